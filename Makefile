@@ -1,0 +1,25 @@
+# Two entry points on a fresh machine: `make demo` (main job) and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+# The CPU wheel of torch 2.13.0 lies on these machines' disk; elsewhere set TORCH_SPEC (e.g. TORCH_SPEC=torch for CUDA).
+TORCH_SPEC ?= torch==2.13.0
+
+.PHONY: install demo test clean
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e ".[dev,sim]"
+	touch $@
+
+install: $(VENV)/.installed
+
+demo: install
+	$(VENV)/bin/mapsqueeze demo
+
+test: install
+	$(PY) -m pytest tests
+
+clean:
+	rm -rf $(VENV) build dist src/*.egg-info

@@ -1,0 +1,21 @@
+"""Typed exceptions. The CLI turns any MapsqueezeError into one error line and a non-zero exit."""
+
+
+class MapsqueezeError(Exception):
+    """Base class of every error mapsqueeze raises on bad input or bad state."""
+
+
+class PointCloudFormatError(MapsqueezeError):
+    """A point-cloud file is missing, unreadable, corrupt or of an unknown format."""
+
+
+class InvalidPointCloudError(MapsqueezeError):
+    """A point cloud is empty, has NaN/inf values, the wrong shape or absurd coordinates."""
+
+
+class ContainerError(MapsqueezeError):
+    """A .msq container is truncated, corrupt or of an unsupported version."""
+
+
+class ModelError(MapsqueezeError):
+    """A model or checkpoint cannot be found, loaded or matched to its configuration."""

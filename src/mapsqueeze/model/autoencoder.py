@@ -1,0 +1,145 @@
+"""The DEPOCO autoencoder (paper Fig. 2) and the numpy-level model used by the codec."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+
+from mapsqueeze.model.config import ModelConfig
+from mapsqueeze.model.deconv import AdaptiveDeconv
+from mapsqueeze.model.kpconv import EncoderBlock
+
+
+class Encoder(nn.Module):
+    """Three KPConv blocks with grid subsampling, then a linear layer to the embedding feature."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        scale = config.map_size
+        dims = (1,) + config.encoder_dims
+        self.blocks = nn.ModuleList(
+            EncoderBlock(dims[i], dims[i + 1], grid / scale, radius / scale, config.max_neighbors[i],
+                         config.num_kernel_points, config.leaky_relu_slope, config.batchnorm_momentum)
+            for i, (grid, radius) in enumerate(zip(config.block_grid_sizes(), config.block_kernel_radii())))
+        self.embedding = nn.Linear(config.encoder_dims[-1], config.embedding_dim)
+
+    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """points (N,3) normalised -> embedding points (M,3) normalised, features (M, embedding_dim)."""
+        features = torch.ones(points.shape[0], 1, dtype=points.dtype, device=points.device)  # occupancy
+        for block in self.blocks:
+            points, features = block(points, features)
+        return points, self.embedding(features)
+
+
+class Decoder(nn.Module):
+    """Four adaptive deconvolutions, then a linear layer whose output refines the coordinates."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        dims = [config.embedding_dim] + [config.decoder_dim] * len(config.upsampling_factors)
+        self.blocks = nn.ModuleList(
+            AdaptiveDeconv(dims[i], dims[i + 1], k, config.decoder_kernel_radius, config.decoder_hidden,
+                           config.leaky_relu_slope)
+            for i, k in enumerate(config.upsampling_factors))
+        self.refine = nn.Linear(config.decoder_dim, 3)
+
+    def forward(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Embedding (normalised) -> (output points, [cloud after each deconvolution]) in normalised units."""
+        intermediate = []
+        for block in self.blocks:
+            points, features = block(points, features)
+            intermediate.append(points)
+        return points + self.refine(features), intermediate
+
+
+class Autoencoder(nn.Module):
+    """Encoder + decoder of one rate point; all coordinates normalised (tile-local metres / map_size)."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        self.encoder = Encoder(config)
+        self.decoder = Decoder(config)
+
+    def forward(self, points: torch.Tensor):
+        emb_points, emb_features = self.encoder(points)
+        output, intermediate = self.decoder(emb_points, emb_features)
+        return output, intermediate, (emb_points, emb_features)
+
+
+@dataclass
+class Embedding:
+    """The compressed form of one tile: points (M,3) float32 tile-local metres, features (M,D) float32."""
+
+    points: np.ndarray
+    features: np.ndarray
+
+
+class CompressionModel:
+    """A trained autoencoder with a numpy API in tile-local metres (what the codec calls)."""
+
+    def __init__(self, network: Autoencoder, model_id: str, weights_sha256: str, device: str = "cpu"):
+        self.network = network.to(device).eval()
+        self.config = network.config
+        self.model_id = model_id
+        self.weights_sha256 = weights_sha256
+        self.device = torch.device(device)
+
+    def select_input(self, points_local: np.ndarray) -> np.ndarray:
+        """At most config.max_input_points points, drawn with a fixed seed (deterministic encoding)."""
+        if len(points_local) <= self.config.max_input_points:
+            return points_local
+        rng = np.random.default_rng(0)
+        keep = np.sort(rng.choice(len(points_local), self.config.max_input_points, replace=False))
+        return points_local[keep]
+
+    @torch.no_grad()
+    def encode(self, points_local: np.ndarray) -> Embedding:
+        """Tile-local points (N,3) metres -> embedding (positions in metres, features)."""
+        scale = self.config.map_size
+        pts = np.asarray(self.select_input(points_local), dtype=np.float32) / np.float32(scale)
+        emb_points, emb_features = self.network.encoder(torch.from_numpy(pts).to(self.device))
+        return Embedding((emb_points.cpu().numpy() * np.float32(scale)).astype(np.float32),
+                         emb_features.cpu().numpy().astype(np.float32))
+
+    @torch.no_grad()
+    def decode(self, points: np.ndarray, features: np.ndarray, n_points: int | None = None) -> np.ndarray:
+        """Embedding -> dense cloud (K,3) float32 tile-local metres.
+
+        n_points=None gives the native count (M x prod(K_i)). A smaller count keeps an evenly spread deterministic
+        subset; a larger one adds midpoints between each output point and its nearest neighbours (arbitrary density).
+        """
+        scale = np.float32(self.config.map_size)
+        p = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32) / scale).to(self.device)
+        f = torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32)).to(self.device)
+        if len(p) == 0:
+            return np.zeros((0, 3), dtype=np.float32)
+        output, _ = self.network.decoder(p, f)
+        cloud = output.cpu().numpy() * scale
+        return resample_to_count(cloud, n_points).astype(np.float32)
+
+
+def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
+    """Thin or densify a decoded cloud to exactly n_points (deterministic)."""
+    if n_points is None or n_points == len(cloud):
+        return cloud
+    if n_points <= 0:
+        return cloud[:0]
+    if n_points < len(cloud):
+        keep = np.sort(np.random.default_rng(len(cloud)).choice(len(cloud), n_points, replace=False))
+        return cloud[keep]
+    # Densify: midpoints towards the k nearest neighbours, as many rounds of k as needed.
+    k = int(np.ceil(n_points / len(cloud)))
+    _, nn_idx = cKDTree(cloud).query(cloud, k=min(k + 1, len(cloud)))
+    nn_idx = np.atleast_2d(nn_idx)[:, 1:] if len(cloud) > 1 else np.zeros((1, 0), dtype=np.int64)
+    if nn_idx.shape[1] == 0:
+        return np.repeat(cloud, int(np.ceil(n_points / len(cloud))), axis=0)[:n_points]
+    midpoints = 0.5 * (cloud[:, None, :] + cloud[nn_idx]).reshape(-1, 3)
+    extra = n_points - len(cloud)
+    if extra < len(midpoints):
+        midpoints = resample_to_count(midpoints, extra)
+    return np.concatenate([cloud, midpoints[:extra]], axis=0)

@@ -1,0 +1,109 @@
+"""Network configuration: a dataclass saved as JSON beside the weights."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mapsqueeze.errors import ModelError
+
+# r_s in metres of the paper's four rate points.
+RATE_SUBSAMPLING_M = {"e0": 3.0, "e1": 2.0, "e2": 1.2, "e3": 1.0}
+
+
+@dataclass
+class ModelConfig:
+    """Architecture of one rate point. Lengths in metres unless stated; the network works on coordinates / map_size."""
+
+    name: str = "e1"
+    subsampling_dist: float = 2.0  # r_s (m): grid of the embedding points
+    map_size: float = 40.0  # normalisation scale (m): network coordinates = tile-local metres / map_size
+    tile_size: tuple[float, float, float] = (40.0, 40.0, 15.0)  # (m)
+    # Encoder: three KPConv ResNet blocks with grid subsampling at factor * r_s, then a linear layer.
+    encoder_dims: tuple[int, ...] = (16, 32, 32)
+    subsampling_factors: tuple[float, ...] = (0.1, 0.5, 1.0)
+    max_neighbors: tuple[int, ...] = (70, 50, 25)
+    kernel_radius_factor: float = 1.0  # KPConv radius = max(min_kernel_radius, factor * block grid) (m)
+    min_kernel_radius: float = 1.5  # (m)
+    num_kernel_points: int = 27
+    embedding_dim: int = 3
+    # Decoder: four adaptive deconvolutions, K_i children per point, then a linear coordinate refinement.
+    decoder_dim: int = 32
+    decoder_hidden: int = 128
+    decoder_kernel_radius: float = 0.05  # offset scale in normalised units (0.05 * 40 m = 2 m)
+    density_a: float = 0.006  # A(r_s) = a * r_s^-b: embedding points per map point (Sec. IV-E)
+    density_b: float = 1.764
+    upsampling_factors: tuple[int, ...] | None = None  # None: derived from the density law (reference rule)
+    max_input_points: int = 30000  # encoder input cap (deterministic random subset beyond it)
+    leaky_relu_slope: float = 0.01
+    batchnorm_momentum: float = 0.1
+    extra: dict = field(default_factory=dict)  # provenance (e.g. imported from), training summary
+
+    def __post_init__(self) -> None:
+        self.tile_size = tuple(float(v) for v in self.tile_size)
+        self.encoder_dims = tuple(int(v) for v in self.encoder_dims)
+        self.subsampling_factors = tuple(float(v) for v in self.subsampling_factors)
+        self.max_neighbors = tuple(int(v) for v in self.max_neighbors)
+        if self.upsampling_factors is None:
+            self.upsampling_factors = density_law_factors(self.density_a, self.density_b, self.subsampling_dist)
+        self.upsampling_factors = tuple(int(v) for v in self.upsampling_factors)
+        if not (len(self.encoder_dims) == len(self.subsampling_factors) == len(self.max_neighbors)):
+            raise ModelError("encoder_dims, subsampling_factors and max_neighbors must have the same length")
+        if self.subsampling_dist <= 0 or any(k < 1 for k in self.upsampling_factors):
+            raise ModelError("subsampling_dist must be > 0 and every upsampling factor >= 1")
+
+    @classmethod
+    def for_rate(cls, rate: str, **overrides) -> "ModelConfig":
+        """The paper's configuration for rate point e0..e3 (r_s = 3.0/2.0/1.2/1.0 m)."""
+        if rate not in RATE_SUBSAMPLING_M:
+            raise ModelError(f"unknown rate {rate!r}; choose one of {', '.join(RATE_SUBSAMPLING_M)}")
+        r_s = RATE_SUBSAMPLING_M[rate]
+        defaults = {"name": rate, "subsampling_dist": r_s, "min_kernel_radius": 1.2 if r_s <= 1.0 else 1.5}
+        defaults.update(overrides)
+        return cls(**defaults)
+
+    def block_grid_sizes(self) -> list[float]:
+        """Grid subsampling voxel edge of each encoder block (m)."""
+        return [self.subsampling_dist * f for f in self.subsampling_factors]
+
+    def block_kernel_radii(self) -> list[float]:
+        """KPConv neighbourhood radius of each encoder block (m)."""
+        return [max(self.min_kernel_radius, self.kernel_radius_factor * g) for g in self.block_grid_sizes()]
+
+    @property
+    def native_upsampling(self) -> int:
+        """Output points per embedding point of the decoder as trained."""
+        return math.prod(self.upsampling_factors)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "ModelConfig":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ModelError(f"model config is not valid JSON: {exc}") from None
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ModelError(f"model config has unknown keys: {', '.join(sorted(unknown))}")
+        return cls(**data)
+
+    @classmethod
+    def load(cls, path: Path) -> "ModelConfig":
+        return cls.from_json(Path(path).read_text())
+
+
+def density_law(a: float, b: float, subsampling_dist: float) -> float:
+    """A(r_s) = a * r_s^-b: expected embedding points per map point at grid r_s (m)."""
+    return a * subsampling_dist ** (-b)
+
+
+def density_law_factors(a: float, b: float, subsampling_dist: float, n_blocks: int = 4) -> tuple[int, ...]:
+    """Reference rule: every block upsamples by round((1 / A(r_s))^(1 / n_blocks))."""
+    per_block = max(1, round((1.0 / density_law(a, b, subsampling_dist)) ** (1.0 / n_blocks)))
+    return (per_block,) * n_blocks

@@ -1,0 +1,82 @@
+"""Encoder: KPConv ResNet-like blocks with grid subsampling (paper Sec. III, eq. 1-2)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
+
+
+def grid_kernel_points(radius: float, num_kernel_points: int = 27) -> np.ndarray:
+    """Kernel points on a regular n x n x n grid inside the sphere of `radius` (corners at distance radius)."""
+    n = round(num_kernel_points ** (1 / 3))
+    if n**3 != num_kernel_points:
+        raise ValueError(f"num_kernel_points must be a cube, got {num_kernel_points}")
+    axis = np.linspace(-1.0, 1.0, n)
+    mesh = np.meshgrid(axis, axis, axis)  # 'xy' indexing: the reference's kernel order
+    points = np.stack([m.reshape(-1) for m in mesh], axis=1) / math.sqrt(3.0)
+    return (points * radius).astype(np.float32)
+
+
+class KPConv(nn.Module):
+    """Rigid kernel point convolution with linear influence max(0, 1 - d / sigma) (eq. 1-2)."""
+
+    def __init__(self, in_dim: int, out_dim: int, radius: float, num_kernel_points: int = 27):
+        super().__init__()
+        self.radius = radius
+        self.sigma = radius / (round(num_kernel_points ** (1 / 3)) - 1) * 1.5  # kernel point influence extent
+        self.weights = nn.Parameter(torch.empty(num_kernel_points, in_dim, out_dim))
+        nn.init.kaiming_uniform_(self.weights, a=math.sqrt(5))
+        self.register_buffer("kernel_points", torch.from_numpy(grid_kernel_points(radius, num_kernel_points)))
+
+    def forward(self, queries: torch.Tensor, source: torch.Tensor, neighbors: torch.Tensor, features: torch.Tensor):
+        """queries (Q,3), source (N,3), neighbors (Q,K) indices into source (N = shadow), features (N,C) -> (Q,D)."""
+        shadow_point = torch.full_like(source[:1], 1e6)
+        padded_source = torch.cat([source, shadow_point], dim=0)
+        padded_features = torch.cat([features, torch.zeros_like(features[:1])], dim=0)
+        relative = padded_source[neighbors] - queries.unsqueeze(1)  # (Q, K, 3)
+        differences = relative.unsqueeze(2) - self.kernel_points  # (Q, K, M, 3)
+        distances = torch.sqrt((differences**2).sum(dim=3))
+        influence = torch.clamp(1.0 - distances / self.sigma, min=0.0).transpose(1, 2)  # (Q, M, K)
+        weighted = torch.matmul(influence, padded_features[neighbors])  # (Q, M, C)
+        return torch.matmul(weighted.permute(1, 0, 2), self.weights).sum(dim=0)
+
+
+class EncoderBlock(nn.Module):
+    """Grid subsampling + KPConv ResNet block: pre-linear, KPConv, BN/LeakyReLU/linear/BN, shortcut, LeakyReLU."""
+
+    def __init__(self, in_dim: int, out_dim: int, grid_size: float, kernel_radius: float, max_neighbors: int,
+                 num_kernel_points: int, slope: float, momentum: float):
+        super().__init__()
+        self.grid_size = grid_size  # normalised units
+        self.kernel_radius = kernel_radius  # normalised units
+        self.max_neighbors = max_neighbors
+        self.activation = nn.LeakyReLU(slope)
+        conv_in = in_dim
+        self.preactivation: nn.Module = nn.Identity()
+        if in_dim > 1:
+            self.preactivation = nn.Sequential(
+                nn.Linear(in_dim, out_dim), nn.BatchNorm1d(out_dim, momentum=momentum), self.activation)
+            conv_in = out_dim
+        self.kp_conv = KPConv(conv_in, out_dim, kernel_radius, num_kernel_points)
+        self.post_layer = nn.Sequential(
+            nn.BatchNorm1d(out_dim, momentum=momentum), self.activation, nn.Linear(out_dim, out_dim),
+            nn.BatchNorm1d(out_dim, momentum=momentum))
+        self.shortcut: nn.Module = nn.Identity()
+        if in_dim != out_dim:
+            self.shortcut = nn.Sequential(nn.Linear(in_dim, out_dim), nn.BatchNorm1d(out_dim, momentum=momentum))
+
+    def forward(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        points_np = points.detach().cpu().numpy()
+        kept = grid_subsample(points_np, self.grid_size)
+        neighbors = radius_neighbors(points_np, points_np[kept], self.kernel_radius, self.max_neighbors)
+        kept_t = torch.from_numpy(kept).to(points.device)
+        queries = points[kept_t]
+        conv = self.kp_conv(queries, points, torch.from_numpy(neighbors).to(points.device),
+                            self.preactivation(features))
+        out = self.activation(self.shortcut(features[kept_t]) + self.post_layer(conv))
+        return queries, out
