@@ -39,8 +39,10 @@ class KPConv(nn.Module):
         padded_source = torch.cat([source, shadow_point], dim=0)
         padded_features = torch.cat([features, torch.zeros_like(features[:1])], dim=0)
         relative = padded_source[neighbors] - queries.unsqueeze(1)  # (Q, K, 3)
-        differences = relative.unsqueeze(2) - self.kernel_points  # (Q, K, M, 3)
-        distances = torch.sqrt((differences**2).sum(dim=3))
+        # |y - x_m|^2 = |y|^2 + |x_m|^2 - 2 y.x_m: avoids the (Q, K, M, 3) difference tensor.
+        sq_distances = ((relative**2).sum(dim=2, keepdim=True) + (self.kernel_points**2).sum(dim=1)
+                        - 2.0 * torch.matmul(relative, self.kernel_points.T))  # (Q, K, M)
+        distances = torch.sqrt(torch.clamp(sq_distances, min=0.0))
         influence = torch.clamp(1.0 - distances / self.sigma, min=0.0).transpose(1, 2)  # (Q, M, K)
         weighted = torch.matmul(influence, padded_features[neighbors])  # (Q, M, C)
         return torch.matmul(weighted.permute(1, 0, 2), self.weights).sum(dim=0)

@@ -1,0 +1,213 @@
+"""Training loop of the autoencoder (paper Sec. IV-A): Adam + one-cycle cosine schedule, batch by gradient
+accumulation, validation each epoch with the best checkpoint kept, resumable, CSV log, rich progress."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mapsqueeze.errors import MapsqueezeError, ModelError
+from mapsqueeze.model import Autoencoder, ModelConfig, build_model, load_network, save_model
+from mapsqueeze.model.loss import chamfer_loss, depoco_loss
+
+
+@dataclass
+class TrainConfig:
+    """Optimisation settings; defaults are the paper's (lr 1e-6 -> 1e-4 over 10 % -> 1e-5, cosine, batch 3)."""
+
+    epochs: int = 200
+    batch_size: int = 3
+    start_lr: float = 1e-6
+    max_lr: float = 1e-4
+    end_lr: float = 1e-5
+    pct_start: float = 0.1
+    beta: float = 0.2  # weight of the intermediate-cloud Chamfer terms (eq. 8); 0 = ablation without it
+    max_points: int = 30000
+    seed: int = 0
+    augment: bool = True  # random 90-degree z rotations, flips and sub-grid shifts
+    max_steps: int | None = None  # stop after this many optimiser steps (time-boxed runs)
+    max_minutes: float | None = None  # stop (after checkpointing) when this wall time is exceeded
+    val_limit: int | None = None  # validate on at most this many submaps
+
+
+@dataclass
+class Sample:
+    """One training cloud in metres, relative to its own minimum corner (float32)."""
+
+    name: str
+    points: np.ndarray
+
+
+def load_samples(dataset: Path, splits: tuple[str, ...]) -> list[Sample]:
+    """Submaps of a dataset directory (manifest.json written by `build-map`/`simulate`) in the given splits, or
+    every point-cloud file of a plain folder (all splits)."""
+    from mapsqueeze.io import read_points
+
+    dataset = Path(dataset)
+    manifest = dataset / "manifest.json"
+    if manifest.is_file():
+        try:
+            entries = json.loads(manifest.read_text())["submaps"]
+            files = [dataset / e["file"] for e in entries if e.get("split", "train") in splits]
+        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise MapsqueezeError(f"{manifest}: not a dataset manifest ({exc})") from None
+    elif dataset.is_dir():
+        files = sorted(p for p in dataset.iterdir() if p.suffix in {".ply", ".pcd", ".npy", ".bin", ".las", ".laz"})
+    else:
+        raise MapsqueezeError(f"dataset {dataset} not found")
+    samples = []
+    for f in files:
+        pts = read_points(f)
+        samples.append(Sample(f.stem, (pts - pts.min(axis=0)).astype(np.float32)))
+    return samples
+
+
+def augment_points(points: np.ndarray, rng: np.random.Generator, extent: float) -> np.ndarray:
+    """Random multiple-of-90-degree rotation about z, random x flip and a shift that keeps the cloud in [0, extent)."""
+    pts = points.astype(np.float64)
+    center = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    pts = pts - center
+    k = rng.integers(4)
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][k]
+    pts = pts @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64).T
+    if rng.random() < 0.5:
+        pts[:, 0] = -pts[:, 0]
+    pts -= pts.min(axis=0)
+    slack = np.maximum(extent - 1e-3 - pts.max(axis=0), 0.0)
+    pts += rng.random(3) * np.minimum(slack, 2.0)
+    return pts.astype(np.float32)
+
+
+def select_points(points: np.ndarray, max_points: int, rng: np.random.Generator) -> np.ndarray:
+    if len(points) <= max_points:
+        return points
+    return points[rng.choice(len(points), max_points, replace=False)]
+
+
+def one_cycle(optimizer, total_steps: int, cfg: TrainConfig):
+    return torch.optim.lr_scheduler.OneCycleLR(
+        optimizer, max_lr=cfg.max_lr, total_steps=max(total_steps, 2), pct_start=cfg.pct_start,
+        anneal_strategy="cos", div_factor=cfg.max_lr / cfg.start_lr, final_div_factor=cfg.start_lr / cfg.end_lr,
+        cycle_momentum=False)
+
+
+@torch.no_grad()
+def validate(network: Autoencoder, samples: list[Sample], device: torch.device) -> float:
+    """Mean Chamfer distance (m^2) between each validation cloud (<= max_input_points) and its reconstruction."""
+    network.eval()
+    scale = network.config.map_size
+    rng = np.random.default_rng(12345)
+    values = []
+    for s in samples:
+        pts = torch.from_numpy(select_points(s.points, network.config.max_input_points, rng) / scale).to(device)
+        out, _, _ = network(pts)
+        values.append(chamfer_loss(pts, out).item() * scale**2)
+    network.train()
+    return float(np.mean(values)) if values else math.nan
+
+
+def init_from(network: Autoencoder, source_dir: Path) -> int:
+    """Copy every parameter whose name and shape match from another model (e.g. another rate point)."""
+    other, _ = load_network(source_dir)
+    own = network.state_dict()
+    matched = {k: v for k, v in other.state_dict().items() if k in own and own[k].shape == v.shape}
+    own.update(matched)
+    network.load_state_dict(own)
+    return len(matched)
+
+
+def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainConfig, device: str = "cpu",
+          resume: bool = True, init: Path | None = None, progress=None) -> dict:
+    """Train and keep `out_dir/best` (lowest validation Chamfer) and `out_dir/last` (+ optimiser state) up to date.
+
+    Returns a summary dict (also written to out_dir/summary.json).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dev = torch.device(device)
+    torch.manual_seed(cfg.seed)
+    train_set = load_samples(dataset, ("train",))
+    val_set = load_samples(dataset, ("val",))[: cfg.val_limit]
+    if not train_set:
+        raise MapsqueezeError(f"{dataset}: no training submaps")
+    network = build_model(model_config, seed=cfg.seed).to(dev)
+    if init is not None:
+        init_from(network, init)
+    optimizer = torch.optim.Adam(network.parameters(), lr=cfg.max_lr)
+    steps_per_epoch = max(1, len(train_set) // cfg.batch_size)
+    scheduler = one_cycle(optimizer, cfg.epochs * steps_per_epoch, cfg)
+    state_path = out_dir / "last" / "train_state.pt"
+    start_epoch, step, best = 0, 0, math.inf
+    if resume and state_path.is_file():
+        network, _ = load_network(out_dir / "last")
+        network.to(dev)
+        optimizer = torch.optim.Adam(network.parameters(), lr=cfg.max_lr)
+        scheduler = one_cycle(optimizer, cfg.epochs * steps_per_epoch, cfg)
+        state = torch.load(state_path, map_location=dev, weights_only=True)
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        start_epoch, step, best = int(state["epoch"]), int(state["step"]), float(state["best"])
+    log_path = out_dir / "log.csv"
+    new_log = not log_path.is_file()
+    log = open(log_path, "a", newline="")
+    writer = csv.writer(log)
+    if new_log:
+        writer.writerow(["epoch", "step", "lr", "train_loss", "train_chamfer_m2", "val_chamfer_m2", "seconds"])
+    scale = model_config.map_size
+    t0 = time.time()
+    stop = False
+    network.train()
+    for epoch in range(start_epoch, cfg.epochs):
+        rng = np.random.default_rng([cfg.seed, epoch])
+        order = rng.permutation(len(train_set))[: steps_per_epoch * cfg.batch_size]
+        losses, chamfers = [], []
+        optimizer.zero_grad()
+        for i, idx in enumerate(order):
+            pts = train_set[idx].points
+            if cfg.augment:
+                pts = augment_points(pts, rng, scale)
+            pts = torch.from_numpy(select_points(pts, cfg.max_points, rng) / scale).to(dev)
+            output, intermediate, _ = network(pts)
+            loss, main = depoco_loss(pts, output, intermediate, cfg.beta)
+            (loss / cfg.batch_size).backward()
+            losses.append(loss.item())
+            chamfers.append(main.item() * scale**2)
+            if i % cfg.batch_size == cfg.batch_size - 1:
+                optimizer.step()
+                optimizer.zero_grad()
+                scheduler.step()
+                step += 1
+                if progress is not None:
+                    progress(epoch, step, float(np.mean(losses[-cfg.batch_size:])))
+                if (cfg.max_steps and step >= cfg.max_steps) or (
+                        cfg.max_minutes and time.time() - t0 > 60 * cfg.max_minutes):
+                    stop = True
+                    break
+        val = validate(network, val_set, dev) if val_set else float(np.mean(chamfers))
+        writer.writerow([epoch + 1, step, f"{scheduler.get_last_lr()[0]:.3e}", f"{np.mean(losses):.6f}",
+                         f"{np.mean(chamfers):.6f}", f"{val:.6f}", f"{time.time() - t0:.1f}"])
+        log.flush()
+        if val < best:
+            best = val
+            network.config.extra = {**network.config.extra, "epochs": epoch + 1, "steps": step,
+                                    "val_chamfer_m2": val, "dataset": str(dataset), "beta": cfg.beta}
+            save_model(network, out_dir / "best")
+        save_model(network, out_dir / "last")
+        torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch + 1,
+                    "step": step, "best": best}, state_path)
+        if stop:
+            break
+    log.close()
+    summary = {"best_val_chamfer_m2": best, "steps": step, "minutes": (time.time() - t0) / 60,
+               "train_config": asdict(cfg), "train_submaps": len(train_set), "val_submaps": len(val_set)}
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    if not (out_dir / "best" / "model.safetensors").is_file():
+        raise ModelError("training produced no checkpoint")
+    return summary

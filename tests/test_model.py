@@ -1,0 +1,180 @@
+"""The DEPOCO network: shapes, gradients, overfitting, determinism, density law, reference reproduction."""
+
+import numpy as np
+import pytest
+import torch
+
+from mapsqueeze.model import (
+    ModelConfig, build_model, density_law_factors, import_reference, load_model, resample_to_count, save_model,
+)
+from mapsqueeze.model.density import fit_density_law
+from mapsqueeze.model.loss import chamfer_loss, depoco_loss
+
+
+def street_patch(n=6000, seed=0, extent=20.0):
+    """A small map-like cloud (metres, >= 0): ground plane plus two walls, with 2 cm noise."""
+    rng = np.random.default_rng(seed)
+    k = n // 3
+    ground = np.c_[rng.random((k, 2)) * extent, np.zeros(k)]
+    wall1 = np.c_[rng.random(k) * extent, np.full(k, 2.0), rng.random(k) * 6]
+    wall2 = np.c_[np.full(n - 2 * k, extent - 2.0), rng.random(n - 2 * k) * extent, rng.random(n - 2 * k) * 6]
+    pts = np.vstack([ground, wall1, wall2]) + rng.normal(0, 0.02, (n, 3))
+    return (pts - pts.min(axis=0)).astype(np.float32)
+
+
+def test_reference_rule_for_upsampling_factors():
+    # The reference's counts on the golden submap: 191 x 6^4, 400 x 5^4, 993 x 4^4, 1369 x 4^4.
+    assert [density_law_factors(0.006, 1.764, r)[0] for r in (3.0, 2.0, 1.2, 1.0)] == [6, 5, 4, 4]
+
+
+def test_block_shapes_and_point_counts():
+    config = ModelConfig.for_rate("e0")
+    net = build_model(config).eval()
+    pts = torch.from_numpy(street_patch() / 40.0)
+    with torch.no_grad():
+        out, inter, (emb_p, emb_f) = net(pts)
+    m = len(emb_p)
+    assert emb_f.shape == (m, 3) and 0 < m < 200
+    assert [len(c) for c in inter] == [m * 6, m * 36, m * 216, m * 1296]
+    assert out.shape == (m * 1296, 3)
+    # each encoder block keeps at most one point per voxel of its grid
+    grid = config.subsampling_dist / 40.0
+    cells = np.floor(emb_p.numpy() / grid)
+    assert len(np.unique(cells, axis=0)) == m
+
+
+def test_gradient_reaches_every_parameter():
+    net = build_model(ModelConfig.for_rate("e1"))
+    pts = torch.from_numpy(street_patch(3000) / 40.0)
+    out, inter, _ = net(pts)
+    loss, _ = depoco_loss(pts, out, inter)
+    loss.backward()
+    for name, p in net.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+        assert p.grad.abs().sum() > 0, f"no gradient reaches {name}"
+
+
+def test_chamfer_loss_matches_brute_force():
+    rng = np.random.default_rng(1)
+    a = torch.from_numpy(rng.random((50, 3)))
+    b = torch.from_numpy(rng.random((70, 3)))
+    d = torch.cdist(a, b) ** 2
+    expected = 0.5 * d.min(dim=1).values.mean() + 0.5 * d.min(dim=0).values.mean()
+    assert torch.allclose(chamfer_loss(a, b), expected)
+
+
+def test_tiny_model_overfits_a_patch():
+    torch.manual_seed(0)
+    config = ModelConfig.for_rate("e0", upsampling_factors=(3, 3, 3, 3))
+    net = build_model(config)
+    pts = torch.from_numpy(street_patch(2500, extent=12.0) / 40.0)
+    opt = torch.optim.Adam(net.parameters(), lr=2e-3)
+    first = None
+    for _ in range(150):
+        out, inter, _ = net(pts)
+        loss, main = depoco_loss(pts, out, inter)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        first = main.item() if first is None else first
+    net.eval()
+    with torch.no_grad():
+        out, _, _ = net(pts)
+    final = chamfer_loss(pts, out).item()
+    assert final < first / 10, (first, final)
+
+
+def test_determinism_with_fixed_seed(tmp_path):
+    config = ModelConfig.for_rate("e1")
+    a, b = build_model(config, seed=3), build_model(config, seed=3)
+    for (ka, va), (kb, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert ka == kb and torch.equal(va, vb)
+    save_model(a, tmp_path / "m")
+    model = load_model(tmp_path / "m")
+    pts = street_patch()
+    e1, e2 = model.encode(pts), model.encode(pts)
+    assert np.array_equal(e1.points, e2.points) and np.array_equal(e1.features, e2.features)
+    d1 = model.decode(e1.points, e1.features)
+    assert np.array_equal(d1, model.decode(e1.points, e1.features))
+    assert len(model.weights_sha256) == 64
+
+
+def test_arbitrary_density_decoding(tmp_path):
+    save_model(build_model(ModelConfig.for_rate("e0")), tmp_path / "m")
+    model = load_model(tmp_path / "m")
+    emb = model.encode(street_patch())
+    native = len(model.decode(emb.points, emb.features))
+    assert native == len(emb.points) * 1296
+    for n in (1000, native // 2, native * 3):
+        assert len(model.decode(emb.points, emb.features, n_points=n)) == n
+
+
+def test_resample_to_count_densifies_between_neighbours():
+    line = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)]
+    dense = resample_to_count(line, 19)
+    assert len(dense) == 19
+    # new points are midpoints on the line, within its extent
+    assert np.all(dense[:, 1:] == 0) and dense[:, 0].min() >= 0 and dense[:, 0].max() <= 9
+
+
+def test_density_law_fit_recovers_planar_dimension():
+    rng = np.random.default_rng(0)
+    clouds = [np.c_[rng.random((40000, 2)) * 40, rng.normal(0, 0.01, 40000)] for _ in range(2)]
+    fit = fit_density_law(clouds, grids_m=(1.0, 1.5, 2.0, 3.0, 4.0))
+    assert 1.8 < fit.b < 2.2, fit  # a plane: embedding count ~ r^-2
+    assert fit.rmse < 0.1 * max(fit.mean_rates)
+
+
+def test_config_json_round_trip():
+    config = ModelConfig.for_rate("e2")
+    assert ModelConfig.from_json(config.to_json()) == config
+
+
+# --- faithfulness: the reference checkpoints reproduce their golden outputs in this code -----------------------
+
+@pytest.mark.parametrize("rate", ["e0", "e1", "e2", "e3"])
+def test_reference_decoder_and_encoder_reproduce_golden(reference_dir, rate):
+    golden = np.load(reference_dir / "golden" / f"{rate}_kitti_hdl64_6scans.npz")
+    net = import_reference(reference_dir / rate).eval()
+    with torch.no_grad():
+        decoded, _ = net.decoder(torch.from_numpy(golden["embedding_points"]),
+                                 torch.from_numpy(golden["embedding_features"]))
+        emb_points, emb_features = net.encoder(torch.from_numpy(golden["input_points_normalized"]))
+    assert decoded.shape == golden["decoded_points_normalized"].shape
+    assert np.abs(decoded.numpy() - golden["decoded_points_normalized"]).max() < 1e-5
+    assert np.array_equal(emb_points.half().float().numpy(), golden["embedding_points"])
+    # features differ slightly (neighbour order inside the capped subset); the README quotes 0.03-0.07 on average
+    assert np.abs(emb_features.half().float().numpy() - golden["embedding_features"]).mean() < 0.1
+
+
+REFERENCE_DE_M = {"e0": 0.0926, "e1": 0.0782}
+
+
+@pytest.mark.parametrize("rate", ["e0", "e1"])
+def test_reference_end_to_end_d_e_within_3_percent(reference_dir, real_submaps, rate, tmp_path):
+    from mapsqueeze.io import read_points
+    from mapsqueeze.metrics import d_euclidean
+
+    golden = np.load(reference_dir / "golden" / f"{rate}_kitti_hdl64_6scans.npz")
+    full = read_points(real_submaps / "kitti_hdl64_6scans.ply")
+    net = import_reference(reference_dir / rate)
+    save_model(net, tmp_path / rate)
+    model = load_model(tmp_path / rate)
+    scale = float(golden["normalizer_scale"])
+    origin = golden["normalizer_min"].reshape(3)
+    emb = model.encode(golden["input_points_normalized"] * np.float32(scale))
+    decoded = model.decode(emb.points.astype(np.float16).astype(np.float32),
+                           emb.features.astype(np.float16).astype(np.float32))
+    d_e = d_euclidean(full, decoded.astype(np.float64) + origin)
+    assert abs(d_e - REFERENCE_DE_M[rate]) / REFERENCE_DE_M[rate] < 0.03, d_e
+
+
+def test_import_depoco_cli(reference_dir, tmp_path):
+    from typer.testing import CliRunner
+
+    from mapsqueeze.cli import app
+
+    result = CliRunner().invoke(app, ["import-depoco", str(reference_dir / "e0"), "-o", str(tmp_path / "e0")])
+    assert result.exit_code == 0, result.output
+    model = load_model(tmp_path / "e0")
+    assert model.config.subsampling_dist == 3.0 and model.config.upsampling_factors == (6, 6, 6, 6)
