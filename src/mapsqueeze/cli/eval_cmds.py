@@ -1,0 +1,56 @@
+"""`mapsqueeze eval`: the paper's reconstruction metrics of one reconstruction against its ground truth."""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from mapsqueeze.cli.app import app
+from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.io import read_points
+from mapsqueeze.metrics import IOU_VOXEL_M, Metrics, evaluate
+
+
+def _compressed_size(n_bytes: int | None, compressed: Path | None) -> int | None:
+    """The compressed size in bytes from --bytes or the size of --compressed (at most one of them)."""
+    if n_bytes is not None and compressed is not None:
+        raise MapsqueezeError("give either --bytes or --compressed, not both")
+    if compressed is None:
+        return n_bytes
+    try:
+        return compressed.stat().st_size
+    except OSError as exc:
+        raise MapsqueezeError(f"{compressed}: cannot read its size ({exc.strerror or exc})") from None
+
+
+def _table(metrics: Metrics) -> Table:
+    voxel_cm = " x ".join(f"{size * 100:g}" for size in IOU_VOXEL_M)
+    table = Table("metric", "value", "unit")
+    table.add_row("D_e", f"{metrics.d_e:.6f}", "m")
+    table.add_row("D_perp", f"{metrics.d_perp:.6f}", "m")
+    table.add_row("IoU", f"{metrics.iou:.4f}", f"{voxel_cm} cm voxels")
+    table.add_row("Chamfer", f"{metrics.chamfer:.6g}", "m^2")
+    table.add_row("bpp", "-" if metrics.bpp is None else f"{metrics.bpp:.4f}", "bits per GT point")
+    table.add_row("GT points", f"{metrics.n_gt:,}", "")
+    table.add_row("reconstructed points", f"{metrics.n_rec:,}", "")
+    return table
+
+
+@app.command("eval")
+def eval_command(
+    gt: Path = typer.Argument(..., help="Ground-truth point cloud (any format `mapsqueeze` reads)."),
+    recon: Path = typer.Argument(..., help="Reconstructed point cloud."),
+    n_bytes: int | None = typer.Option(None, "--bytes", min=0, help="Compressed size in bytes, for bpp."),
+    compressed: Path | None = typer.Option(None, "--compressed", help="Compressed file whose size gives bpp."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
+) -> None:
+    """D_e, D_perp, IoU, Chamfer and bits per point of RECON against GT (the paper's Sec. IV-A metrics)."""
+    size = _compressed_size(n_bytes, compressed)
+    metrics = evaluate(read_points(gt), read_points(recon), n_bytes=size)
+    if as_json:
+        print(json.dumps(dataclasses.asdict(metrics)))
+    else:
+        Console().print(_table(metrics))

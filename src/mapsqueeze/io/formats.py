@@ -1,0 +1,306 @@
+"""Readers and writers of every supported point-cloud format, and the registry that picks one by extension.
+
+Format names (`format=` overrides the extension):
+- `bin`      KITTI scan, float32 N x 4 (x, y, z, reflectance), extension .bin
+- `pcd.bin`  nuScenes sweep, float32 N x 5 (x, y, z, intensity, ring), extension .pcd.bin
+- `ply`      PLY (binary little-endian when written; ascii or binary when read), extension .ply;
+             `ply-ascii` writes ascii PLY
+- `pcd`      PCD with DATA binary when written (ascii or binary when read), extension .pcd; `pcd-ascii` writes ascii
+- `las`, `laz` LAS 1.4 point format 0 (laz: LAZ-compressed with lazrs), extensions .las, .laz
+- `npy`      NumPy array N x 3, or N x (3 + k) with k attribute columns, extension .npy
+
+Precision: x, y, z are float64 in memory. PLY and PCD store them as float32 when that errs by at most
+FLOAT32_MAX_ERROR_M (1 mm) and as float64 otherwise (e.g. UTM coordinates). The float32-only .bin formats refuse
+coordinates float32 would round by more than 1 mm. LAS/LAZ store integers with scale LAS_SCALE_M (0.1 mm) and an
+offset of the cloud's minimum rounded down to whole metres: the error is at most 0.05 mm per axis, and the cloud's
+extent must stay below 2^31 * 0.1 mm (about 214 km) per axis.
+"""
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import laspy
+import lazrs
+import numpy as np
+import plyfile
+
+from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
+from mapsqueeze.io.atomic import atomic_output
+from mapsqueeze.io.pcd import read_pcd, write_pcd
+from mapsqueeze.io.pointcloud import (
+    FLOAT32_MAX_ERROR_M,
+    PointCloud,
+    float32_error_m,
+    split_columns,
+    validate_attributes,
+    validate_points,
+)
+
+LAS_SCALE_M = 1e-4
+"""LAS/LAZ coordinate resolution in metres (quantisation error at most half of it)."""
+
+_LAS_POINT_FORMAT = 0
+_LAS_INTEGER_LIMIT = 2**31 - 1
+
+Writer = Callable[[Path, np.ndarray, dict[str, np.ndarray]], tuple[str, ...]]
+
+
+@dataclass(frozen=True)
+class _Format:
+    read: Callable[[Path], PointCloud]
+    write: Writer
+
+
+def _float32_columns(points: np.ndarray, columns: list[np.ndarray], label: str) -> bytes:
+    """x, y, z plus extra columns as row-major float32 bytes; refuse coordinates float32 rounds by > 1 mm."""
+    error = float32_error_m(points)
+    if error > FLOAT32_MAX_ERROR_M:
+        raise InvalidPointCloudError(
+            f"{label} stores float32 x, y, z, which would move points by up to {error * 1e3:.1f} mm; "
+            "shift the cloud towards the origin or write .ply/.las"
+        )
+    return np.column_stack([points, *columns]).astype("<f4").tobytes()
+
+
+def _read_float32_columns(path: Path, names: tuple[str, ...], label: str) -> PointCloud:
+    row_bytes = 4 * (3 + len(names))
+    size = path.stat().st_size
+    if size % row_bytes:
+        raise PointCloudFormatError(
+            f"{path}: {label} size {size:,} bytes is not a multiple of {row_bytes} (float32 x 3+{len(names)}); "
+            "truncated or not this format"
+        )
+    table = np.fromfile(path, dtype="<f4").reshape(-1, 3 + len(names))
+    points = validate_points(table[:, :3], name=str(path))
+    return PointCloud(points, {name: table[:, 3 + column].copy() for column, name in enumerate(names)})
+
+
+def _read_kitti(path: Path) -> PointCloud:
+    return _read_float32_columns(path, ("reflectance",), "KITTI .bin")
+
+
+def _write_kitti(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> tuple[str, ...]:
+    reflectance = attributes.get("reflectance", np.zeros(len(points)))
+    path.write_bytes(_float32_columns(points, [reflectance], "KITTI .bin"))
+    return ("reflectance",) if "reflectance" in attributes else ()
+
+
+_NUSCENES_ATTRIBUTES = ("intensity", "ring")
+
+
+def _read_nuscenes(path: Path) -> PointCloud:
+    return _read_float32_columns(path, _NUSCENES_ATTRIBUTES, "nuScenes .pcd.bin")
+
+
+def _write_nuscenes(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> tuple[str, ...]:
+    columns = [attributes.get(name, np.zeros(len(points))) for name in _NUSCENES_ATTRIBUTES]
+    path.write_bytes(_float32_columns(points, columns, "nuScenes .pcd.bin"))
+    return tuple(name for name in _NUSCENES_ATTRIBUTES if name in attributes)
+
+
+def _read_ply(path: Path) -> PointCloud:
+    try:
+        ply = plyfile.PlyData.read(str(path), mmap="r")  # binary: memory-mapped, copied below
+        vertex = ply["vertex"]
+    except KeyError:
+        raise PointCloudFormatError(f"{path}: PLY file has no vertex element") from None
+    except (plyfile.PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError) as exc:
+        raise PointCloudFormatError(f"{path}: corrupt PLY file ({exc})") from None
+    names = [prop.name for prop in vertex.properties if not isinstance(prop, plyfile.PlyListProperty)]
+    missing = [axis for axis in ("x", "y", "z") if axis not in names]
+    if missing:
+        raise PointCloudFormatError(f"{path}: PLY vertex element has no {', '.join(missing)} property")
+    data = vertex.data
+    points = validate_points(np.column_stack([data["x"], data["y"], data["z"]]), name=str(path))
+    attributes = {name: np.array(data[name]) for name in names if name not in ("x", "y", "z")}
+    return PointCloud(points, attributes)
+
+
+_PLY_INTEGER_TYPES = (np.int32, np.uint32)
+
+
+def _ply_dtype(name: str, values: np.ndarray) -> np.dtype:
+    """The dtype a PLY property can hold losslessly: 64-bit integers narrow to 32 bits when they fit."""
+    if values.dtype.kind == "f" or values.dtype.itemsize < 8:
+        return values.dtype.newbyteorder("<")
+    narrow = np.dtype(_PLY_INTEGER_TYPES[values.dtype.kind == "u"])
+    if values.min() < np.iinfo(narrow).min or values.max() > np.iinfo(narrow).max:
+        raise InvalidPointCloudError(f"attribute {name!r} does not fit the 32-bit integers PLY can store")
+    return narrow.newbyteorder("<")
+
+
+def _write_ply(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], text: bool) -> tuple[str, ...]:
+    xyz_code = "<f4" if float32_error_m(points) <= FLOAT32_MAX_ERROR_M else "<f8"
+    layout = [(axis, xyz_code) for axis in ("x", "y", "z")]
+    layout += [(name, _ply_dtype(name, values)) for name, values in attributes.items()]
+    vertices = np.empty(len(points), dtype=np.dtype(layout))
+    for column, axis in enumerate(("x", "y", "z")):
+        vertices[axis] = points[:, column]
+    for name, values in attributes.items():
+        vertices[name] = values
+    ply = plyfile.PlyData([plyfile.PlyElement.describe(vertices, "vertex")], text=text, byte_order="<")
+    ply.write(str(path))
+    return tuple(attributes)
+
+
+def _read_las(path: Path) -> PointCloud:
+    """Scaled x, y, z as float64; attributes: `intensity` and every extra-bytes dimension."""
+    try:
+        las = laspy.read(path)
+        if len(las.points) != las.header.point_count:
+            raise PointCloudFormatError(
+                f"{path}: LAS header declares {las.header.point_count:,} points, the file holds {len(las.points):,}"
+            )
+        points = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+        attributes = {"intensity": np.array(las.intensity)}
+        for name in las.point_format.extra_dimension_names:
+            attributes.update(split_columns(name, np.array(las[name])))
+    except (laspy.errors.LaspyException, lazrs.LazrsError, ValueError, EOFError) as exc:
+        raise PointCloudFormatError(f"{path}: corrupt LAS/LAZ file ({exc})") from None
+    return PointCloud(validate_points(points, name=str(path)), attributes)
+
+
+def _write_las(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], compress: bool) -> tuple[str, ...]:
+    """LAS 1.4 point format 0, scale LAS_SCALE_M, offset = per-axis minimum rounded down to whole metres.
+
+    `intensity` goes to the standard uint16 field (refused unless it fits exactly); other attributes become
+    extra-bytes dimensions with their own dtype; names of other standard point-format-0 fields are refused.
+    """
+    offset = np.floor(points.min(axis=0))
+    extent = (points.max(axis=0) - offset) / LAS_SCALE_M
+    if extent.max() > _LAS_INTEGER_LIMIT:
+        raise InvalidPointCloudError(
+            f"the cloud spans {extent.max() * LAS_SCALE_M / 1e3:.0f} km, more than LAS can hold at "
+            f"{LAS_SCALE_M * 1e3:g} mm resolution (about {_LAS_INTEGER_LIMIT * LAS_SCALE_M / 1e3:.0f} km)"
+        )
+    header = laspy.LasHeader(version="1.4", point_format=_LAS_POINT_FORMAT)
+    header.offsets = offset
+    header.scales = np.full(3, LAS_SCALE_M)
+    standard = {name.lower() for name in header.point_format.dimension_names}
+    extra = {name: values for name, values in attributes.items() if name != "intensity"}
+    clashing = [name for name in extra if name.lower() in standard]
+    if clashing:
+        raise InvalidPointCloudError(
+            f"attribute {clashing[0]!r} is a standard LAS field mapsqueeze does not write; rename it"
+        )
+    header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=values.dtype) for name, values in extra.items()])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    if "intensity" in attributes:
+        intensity = attributes["intensity"]
+        as_uint16 = intensity.astype(np.uint16)
+        if not np.array_equal(as_uint16, intensity):
+            raise InvalidPointCloudError(
+                "LAS intensity is an integer in 0..65535 and attribute 'intensity' is not; "
+                "rename it to store it as an extra dimension"
+            )
+        las.intensity = as_uint16
+    for name, values in extra.items():
+        las[name] = values
+    with open(path, "wb") as stream:  # a stream: given a path, laspy would pick compression by its suffix
+        las.write(stream, do_compress=compress, laz_backend=laspy.LazBackend.Lazrs if compress else None)
+    return tuple(attributes)
+
+
+def _read_npy(path: Path) -> PointCloud:
+    """Columns 0-2 are x, y, z; further columns become attributes `column3`, `column4`, ..."""
+    try:
+        table = np.load(path, allow_pickle=False)
+    except (ValueError, EOFError) as exc:
+        raise PointCloudFormatError(f"{path}: corrupt or non-numeric .npy file ({exc})") from None
+    if not isinstance(table, np.ndarray) or table.dtype.kind not in "iuf":
+        raise PointCloudFormatError(f"{path}: .npy holds {getattr(table, 'dtype', type(table))}, expected numbers")
+    if table.ndim != 2 or table.shape[1] < 3:
+        raise PointCloudFormatError(f"{path}: .npy array has shape {table.shape}, expected N x 3 or N x (>3)")
+    points = validate_points(table[:, :3], name=str(path))
+    return PointCloud(points, {f"column{column}": table[:, column].copy() for column in range(3, table.shape[1])})
+
+
+def _write_npy(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> tuple[str, ...]:
+    """float64 N x (3 + k): x, y, z then the attributes in order (their names are not stored)."""
+    with open(path, "wb") as stream:
+        np.save(stream, np.column_stack([points, *attributes.values()]).astype(np.float64), allow_pickle=False)
+    return tuple(attributes)
+
+
+_FORMATS: dict[str, _Format] = {
+    "bin": _Format(_read_kitti, _write_kitti),
+    "pcd.bin": _Format(_read_nuscenes, _write_nuscenes),
+    "ply": _Format(_read_ply, partial(_write_ply, text=False)),
+    "ply-ascii": _Format(_read_ply, partial(_write_ply, text=True)),
+    "pcd": _Format(read_pcd, partial(write_pcd, encoding="binary")),
+    "pcd-ascii": _Format(read_pcd, partial(write_pcd, encoding="ascii")),
+    "las": _Format(_read_las, partial(_write_las, compress=False)),
+    "laz": _Format(_read_las, partial(_write_las, compress=True)),
+    "npy": _Format(_read_npy, _write_npy),
+}
+
+SUPPORTED_FORMATS: tuple[str, ...] = tuple(_FORMATS)
+
+# Longest suffix first: ".pcd.bin" must win over ".bin".
+_EXTENSIONS = {".pcd.bin": "pcd.bin", ".bin": "bin", ".ply": "ply", ".pcd": "pcd", ".las": "las", ".laz": "laz",
+               ".npy": "npy"}
+
+
+def _resolve_format(path: Path, format: str | None) -> _Format:
+    if format is not None:
+        name = format.lower().lstrip(".")
+        if name not in _FORMATS:
+            raise PointCloudFormatError(
+                f"{path}: unknown point-cloud format {format!r} (supported: {', '.join(SUPPORTED_FORMATS)})"
+            )
+        return _FORMATS[name]
+    lower = path.name.lower()
+    for extension, name in _EXTENSIONS.items():
+        if lower.endswith(extension):
+            return _FORMATS[name]
+    raise PointCloudFormatError(
+        f"{path}: unknown point-cloud extension (known: {', '.join(_EXTENSIONS)}); set the format explicitly"
+    )
+
+
+def read_point_cloud(path: str | os.PathLike, format: str | None = None) -> PointCloud:
+    """Read points (N, 3) float64 metres and per-point attributes; the format comes from the extension
+    unless `format` (one of SUPPORTED_FORMATS) is given. Raises PointCloudFormatError/InvalidPointCloudError."""
+    path = Path(path)
+    if path.is_dir():
+        raise PointCloudFormatError(f"{path}: is a directory, not a point-cloud file")
+    if not path.exists():
+        raise PointCloudFormatError(f"{path}: no such file")
+    reader = _resolve_format(path, format).read
+    try:
+        return reader(path)
+    except OSError as exc:
+        raise PointCloudFormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
+def read_points(path: str | os.PathLike, format: str | None = None) -> np.ndarray:
+    """Read only the points, (N, 3) float64 metres (see `read_point_cloud`)."""
+    return read_point_cloud(path, format).points
+
+
+def write_points(
+    path: str | os.PathLike,
+    points: np.ndarray,
+    format: str | None = None,
+    attributes: dict[str, np.ndarray] | None = None,
+) -> tuple[str, ...]:
+    """Write points (N, 3) metres and optional attributes atomically; returns the attribute names stored.
+
+    The format comes from the extension unless `format` is given. Attributes a format has no place for
+    (e.g. `ring` in a KITTI .bin) are not written: compare the returned names with the ones passed.
+    """
+    path = Path(path)
+    writer = _resolve_format(path, format).write
+    points = validate_points(points, name=f"points for {path}")
+    checked = validate_attributes(attributes, len(points), name=f"points for {path}")
+    try:
+        with atomic_output(path) as temp:
+            return writer(temp, points, checked)
+    except OSError as exc:
+        raise PointCloudFormatError(f"{path}: cannot write ({exc.strerror or exc})") from None
+    except InvalidPointCloudError as exc:
+        raise InvalidPointCloudError(f"{path}: {exc}") from None

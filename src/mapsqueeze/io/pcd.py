@@ -1,0 +1,185 @@
+"""PCD files (Point Cloud Library, header v0.7) with DATA ascii or binary: a small reader and writer.
+
+Fields with COUNT k > 1 become attributes `name_0` .. `name_{k-1}`; padding fields named `_` are dropped.
+DATA binary_compressed (LZF) is refused with a PointCloudFormatError.
+"""
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from mapsqueeze.errors import PointCloudFormatError
+from mapsqueeze.io.pointcloud import (
+    FLOAT32_MAX_ERROR_M,
+    PointCloud,
+    float32_error_m,
+    split_columns,
+    validate_points,
+)
+
+_MAX_HEADER_BYTES = 64 * 1024
+_TYPE_CODES = {"F": "f", "I": "i", "U": "u"}
+_VALID_SIZES = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
+_PADDING_FIELD = "_"
+
+
+def _parse_header(data: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
+    """Header keywords (upper case) -> their values, and the byte offset where the point data starts."""
+    header: dict[str, list[str]] = {}
+    offset = 0
+    while True:
+        end = data.find(b"\n", offset, _MAX_HEADER_BYTES)
+        if end < 0:
+            raise PointCloudFormatError(f"{path}: not a PCD file (no DATA line in the first 64 KiB)")
+        try:
+            line = data[offset:end].decode("ascii").strip()
+        except UnicodeDecodeError:
+            raise PointCloudFormatError(f"{path}: not a PCD file (binary bytes in the header)") from None
+        offset = end + 1
+        if not line or line.startswith("#"):
+            continue
+        keyword, *values = line.split()
+        header[keyword.upper()] = values
+        if keyword.upper() == "DATA":
+            return header, offset
+
+
+def _header_int(header: dict[str, list[str]], keyword: str, path: Path) -> int:
+    values = header.get(keyword)
+    if not values or len(values) != 1 or not values[0].isdigit():
+        raise PointCloudFormatError(f"{path}: PCD header needs {keyword} as one non-negative integer, got {values}")
+    return int(values[0])
+
+
+def _record_dtype(header: dict[str, list[str]], path: Path) -> np.dtype:
+    """The little-endian structured dtype of one point, from FIELDS/SIZE/TYPE/COUNT."""
+    fields = header.get("FIELDS")
+    if not fields:
+        raise PointCloudFormatError(f"{path}: PCD header has no FIELDS line")
+    sizes, types = header.get("SIZE", []), header.get("TYPE", [])
+    counts = header.get("COUNT", ["1"] * len(fields))
+    if not len(fields) == len(sizes) == len(types) == len(counts):
+        raise PointCloudFormatError(
+            f"{path}: PCD header FIELDS/SIZE/TYPE/COUNT have {len(fields)}/{len(sizes)}/{len(types)}/{len(counts)}"
+            " entries, expected the same number"
+        )
+    layout = []
+    for index, (name, size, kind, count) in enumerate(zip(fields, sizes, types, counts)):
+        kind = kind.upper()
+        if kind not in _VALID_SIZES or not size.isdigit() or int(size) not in _VALID_SIZES[kind]:
+            raise PointCloudFormatError(f"{path}: PCD field {name!r} has unsupported TYPE {kind} SIZE {size}")
+        if not count.isdigit() or int(count) < 1:
+            raise PointCloudFormatError(f"{path}: PCD field {name!r} has bad COUNT {count!r}")
+        if name == _PADDING_FIELD:
+            name = f"{_PADDING_FIELD}{index}"
+        code = f"<{_TYPE_CODES[kind]}{size}"
+        layout.append((name, code, (int(count),)) if int(count) > 1 else (name, code))
+    try:
+        dtype = np.dtype(layout)
+    except ValueError as exc:
+        raise PointCloudFormatError(f"{path}: bad PCD FIELDS ({exc})") from None
+    for axis in ("x", "y", "z"):
+        if axis not in dtype.names or dtype[axis].shape != ():
+            raise PointCloudFormatError(f"{path}: PCD file has no scalar {axis} field (FIELDS {' '.join(fields)})")
+    return dtype
+
+
+def _parse_ascii(body: bytes, dtype: np.dtype, num_points: int, path: Path) -> np.ndarray:
+    values_per_point = sum(int(np.prod(dtype[name].shape)) for name in dtype.names)
+    try:
+        rows = np.loadtxt(io.StringIO(body.decode("ascii")), dtype=np.float64, ndmin=2)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise PointCloudFormatError(f"{path}: corrupt PCD ascii data ({exc})") from None
+    if rows.shape != (num_points, values_per_point):
+        raise PointCloudFormatError(
+            f"{path}: PCD header declares {num_points:,} points of {values_per_point} values, "
+            f"the ascii data has {rows.shape[0]:,} rows of {rows.shape[1]}"
+        )
+    records = np.empty(num_points, dtype=dtype)
+    column = 0
+    for name in dtype.names:
+        width = int(np.prod(dtype[name].shape))
+        records[name] = rows[:, column : column + width].reshape(records[name].shape)
+        column += width
+    return records
+
+
+def read_pcd(path: Path) -> PointCloud:
+    """Read a PCD file with DATA ascii or binary."""
+    data = path.read_bytes()
+    header, data_offset = _parse_header(data, path)
+    dtype = _record_dtype(header, path)
+    width, height = _header_int(header, "WIDTH", path), _header_int(header, "HEIGHT", path)
+    num_points = _header_int(header, "POINTS", path) if "POINTS" in header else width * height
+    if width * height != num_points:
+        raise PointCloudFormatError(
+            f"{path}: PCD header WIDTH x HEIGHT = {width * height:,} but POINTS = {num_points:,}"
+        )
+    encoding = " ".join(header["DATA"]).lower()
+    body = data[data_offset:]
+    if encoding == "binary":
+        expected = num_points * dtype.itemsize
+        if len(body) != expected:
+            raise PointCloudFormatError(
+                f"{path}: PCD header declares {num_points:,} points of {dtype.itemsize} bytes ({expected:,} bytes), "
+                f"the file holds {len(body):,} bytes of data"
+            )
+        records = np.frombuffer(body, dtype=dtype, count=num_points)
+    elif encoding == "ascii":
+        records = _parse_ascii(body, dtype, num_points, path) if num_points else np.empty(0, dtype)
+    elif encoding == "binary_compressed":
+        raise PointCloudFormatError(
+            f"{path}: PCD DATA binary_compressed is not supported; re-save it with DATA binary or ascii"
+        )
+    else:
+        raise PointCloudFormatError(f"{path}: unknown PCD DATA encoding {encoding!r}")
+    points = validate_points(np.column_stack([records["x"], records["y"], records["z"]]), name=str(path))
+    attributes = {}
+    for name in dtype.names:
+        if name not in ("x", "y", "z") and not name.startswith(_PADDING_FIELD):
+            attributes.update(split_columns(name, records[name].copy()))
+    return PointCloud(points, attributes)
+
+
+def _format_spec(dtype: np.dtype) -> tuple[str, str, str]:
+    """PCD TYPE, SIZE and the ascii printf format of one scalar field."""
+    if dtype.kind == "f":
+        return "F", str(dtype.itemsize), "%.9g" if dtype.itemsize == 4 else "%.17g"
+    return dtype.kind.upper(), str(dtype.itemsize), "%d"
+
+
+def write_pcd(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], encoding: str) -> tuple[str, ...]:
+    """Write PCD with DATA `encoding` ('binary' or 'ascii'); x, y, z as float32 unless that errs > 1 mm."""
+    xyz_code = "<f4" if float32_error_m(points) <= FLOAT32_MAX_ERROR_M else "<f8"
+    layout = [(axis, xyz_code) for axis in ("x", "y", "z")]
+    layout += [(name, values.dtype.newbyteorder("<")) for name, values in attributes.items()]
+    records = np.empty(len(points), dtype=np.dtype(layout))
+    for column, axis in enumerate(("x", "y", "z")):
+        records[axis] = points[:, column]
+    for name, values in attributes.items():
+        records[name] = values
+    specs = [_format_spec(records.dtype[name]) for name in records.dtype.names]
+    header = "\n".join(
+        [
+            "# .PCD v0.7 - Point Cloud Data file format (written by mapsqueeze)",
+            "VERSION 0.7",
+            "FIELDS " + " ".join(records.dtype.names),
+            "SIZE " + " ".join(size for _, size, _ in specs),
+            "TYPE " + " ".join(kind for kind, _, _ in specs),
+            "COUNT " + " ".join("1" for _ in specs),
+            f"WIDTH {len(records)}",
+            "HEIGHT 1",
+            "VIEWPOINT 0 0 0 1 0 0 0",
+            f"POINTS {len(records)}",
+            f"DATA {encoding}",
+        ]
+    )
+    if encoding == "binary":
+        body = records.tobytes()
+    else:
+        text = io.StringIO()
+        np.savetxt(text, records, fmt=[fmt for _, _, fmt in specs])
+        body = text.getvalue().encode("ascii")
+    path.write_bytes(header.encode("ascii") + b"\n" + body)
+    return tuple(attributes)

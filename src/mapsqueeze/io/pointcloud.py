@@ -1,0 +1,100 @@
+"""The in-memory point cloud and the checks every reader and writer applies to it."""
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mapsqueeze.errors import InvalidPointCloudError
+
+MAX_ABS_COORDINATE_M = 1e7
+"""Coordinates at or beyond 10,000 km from the origin are rejected as absurd (UTM eastings/northings fit)."""
+
+FLOAT32_MAX_ERROR_M = 1e-3
+"""Largest rounding error (metres) accepted when x, y, z are stored as float32; beyond it float64 is used
+(PLY, PCD) or the write is refused (KITTI/nuScenes .bin, which are float32 by definition)."""
+
+_ATTRIBUTE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
+
+
+@dataclass
+class PointCloud:
+    """Points (N, 3) float64 in metres, with per-point attributes (each a 1-D array of length N)."""
+
+    points: np.ndarray
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def validate_points(points, name: str = "point cloud") -> np.ndarray:
+    """Return `points` as a C-contiguous (N, 3) float64 array, or raise InvalidPointCloudError.
+
+    Checks: numeric, shape (N, 3) with N > 0, all finite, every |coordinate| < MAX_ABS_COORDINATE_M.
+    """
+    try:
+        array = np.asarray(points)
+    except (TypeError, ValueError) as exc:
+        raise InvalidPointCloudError(f"{name}: not a numeric array ({exc})") from None
+    if array.dtype.kind not in "iuf":
+        raise InvalidPointCloudError(f"{name}: expected numeric x, y, z, got dtype {array.dtype}")
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidPointCloudError(f"{name}: expected an (N, 3) array of x, y, z, got shape {array.shape}")
+    if len(array) == 0:
+        raise InvalidPointCloudError(f"{name}: the point cloud is empty")
+    array = np.ascontiguousarray(array, dtype=np.float64)
+    finite = np.isfinite(array).all(axis=1)
+    if not finite.all():
+        raise InvalidPointCloudError(
+            f"{name}: {np.count_nonzero(~finite):,} of {len(array):,} points have NaN or infinite coordinates"
+        )
+    largest = float(np.abs(array).max())
+    if largest >= MAX_ABS_COORDINATE_M:
+        raise InvalidPointCloudError(
+            f"{name}: absurd coordinate {largest:.6g} m (limit {MAX_ABS_COORDINATE_M:.0e} m from the origin)"
+        )
+    return array
+
+
+def validate_attributes(attributes: dict | None, num_points: int, name: str = "point cloud") -> dict[str, np.ndarray]:
+    """Return the attributes as 1-D numeric arrays of length `num_points`, or raise InvalidPointCloudError.
+
+    Names must be identifiers of at most 32 characters other than x, y, z (valid in PLY, PCD and LAS).
+    bool becomes uint8, float16 becomes float32 (types every format can store); byte order becomes native.
+    """
+    checked = {}
+    for key, values in (attributes or {}).items():
+        if not isinstance(key, str) or not _ATTRIBUTE_NAME.fullmatch(key) or key.lower() in ("x", "y", "z"):
+            raise InvalidPointCloudError(
+                f"{name}: bad attribute name {key!r} (an identifier of at most 32 characters, not x, y or z)"
+            )
+        try:
+            array = np.asarray(values)
+        except (TypeError, ValueError) as exc:
+            raise InvalidPointCloudError(f"{name}: attribute {key!r} is not an array ({exc})") from None
+        if array.dtype == np.bool_:
+            array = array.astype(np.uint8)
+        elif array.dtype == np.float16:
+            array = array.astype(np.float32)
+        if array.dtype.kind not in "iuf":
+            raise InvalidPointCloudError(f"{name}: attribute {key!r} is not numeric (dtype {array.dtype})")
+        if array.shape != (num_points,):
+            raise InvalidPointCloudError(
+                f"{name}: attribute {key!r} has shape {array.shape}, expected ({num_points},) (one value per point)"
+            )
+        checked[key] = array.astype(array.dtype.newbyteorder("="), copy=False)
+    return checked
+
+
+def float32_error_m(points: np.ndarray) -> float:
+    """Largest absolute error (metres) that storing these float64 coordinates as float32 would introduce."""
+    return float(np.abs(points.astype(np.float32).astype(np.float64) - points).max())
+
+
+def split_columns(name: str, values: np.ndarray) -> dict[str, np.ndarray]:
+    """A per-point field as 1-D attributes: (N,) stays `name`, (N, k) becomes `name_0` .. `name_{k-1}`."""
+    if values.ndim == 1:
+        return {name: values}
+    flat = values.reshape(len(values), -1)
+    return {f"{name}_{column}": flat[:, column].copy() for column in range(flat.shape[1])}

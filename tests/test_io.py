@@ -1,0 +1,422 @@
+"""Point-cloud I/O: round trips of every format, precision, real files from ../shared, typed errors, CLI."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import laspy
+import numpy as np
+import plyfile
+import pytest
+
+from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
+from mapsqueeze.io import (
+    FLOAT32_MAX_ERROR_M,
+    LAS_SCALE_M,
+    SUPPORTED_FORMATS,
+    PointCloud,
+    atomic_output,
+    atomic_write_bytes,
+    read_point_cloud,
+    read_points,
+    validate_points,
+    write_points,
+)
+
+REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+NUSCENES_SWEEP = "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
+UTM_OFFSET_M = np.array([500000.123, 4000000.456, 50.0])
+LAS_ERROR_M = LAS_SCALE_M / 2 + 1e-9  # rounding to the grid, plus float64 slack at UTM magnitudes
+EXTENSION = {"bin": ".bin", "pcd.bin": ".pcd.bin", "ply": ".ply", "ply-ascii": ".ply", "pcd": ".pcd",
+             "pcd-ascii": ".pcd", "las": ".las", "laz": ".laz", "npy": ".npy"}
+
+
+def local_cloud(num_points: int = 500, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-40.0, 40.0, (num_points, 3))
+
+
+def generic_attributes(num_points: int, seed: int = 1) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "intensity": rng.integers(0, 256, num_points).astype(np.uint16),
+        "ring": rng.integers(0, 64, num_points).astype(np.uint8),
+        "time_s": rng.random(num_points),
+    }
+
+
+def attributes_for(fmt: str, num_points: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(2)
+    if fmt == "bin":
+        return {"reflectance": rng.random(num_points).astype(np.float32)}
+    if fmt == "pcd.bin":
+        return {"intensity": rng.integers(0, 256, num_points).astype(np.float32),
+                "ring": rng.integers(0, 32, num_points).astype(np.float32)}
+    return generic_attributes(num_points)
+
+
+def coordinate_tolerance_m(fmt: str, points: np.ndarray) -> float:
+    if fmt in ("las", "laz"):
+        return LAS_ERROR_M
+    if fmt == "npy":
+        return 0.0
+    return float(np.abs(points).max()) * 2.0**-24  # float32 half-ulp; float64 PLY/PCD must be exact
+
+
+def assert_single_line_naming(excinfo, path: Path) -> None:
+    message = str(excinfo.value)
+    assert path.name in message and "\n" not in message, message
+
+
+# ---- round trips -------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("fmt", SUPPORTED_FORMATS)
+def test_round_trip_local_cloud(tmp_path, fmt):
+    points = local_cloud()
+    attributes = attributes_for(fmt, len(points))
+    path = tmp_path / f"cloud{EXTENSION[fmt]}"
+    stored = write_points(path, points, format=fmt, attributes=attributes)
+    assert stored == tuple(attributes)
+    cloud = read_point_cloud(path, format=fmt)
+    assert cloud.points.dtype == np.float64 and cloud.points.shape == points.shape
+    assert np.abs(cloud.points - points).max() <= coordinate_tolerance_m(fmt, points)
+    if fmt == "npy":  # attribute names are not stored in .npy: columns 3.. come back as column3, ...
+        restored = {name: cloud.attributes[f"column{3 + index}"] for index, name in enumerate(attributes)}
+    else:
+        restored = cloud.attributes
+    for name, values in attributes.items():
+        np.testing.assert_array_equal(restored[name], values)
+        if fmt not in ("npy", "las", "laz"):
+            assert restored[name].dtype == values.dtype
+    np.testing.assert_array_equal(read_points(path, format=fmt), cloud.points)
+
+
+@pytest.mark.parametrize("fmt", ["ply", "ply-ascii", "pcd", "pcd-ascii", "las", "laz", "npy"])
+def test_utm_coordinates_keep_precision(tmp_path, fmt):
+    points = local_cloud(300) + UTM_OFFSET_M
+    points[0] = UTM_OFFSET_M
+    path = tmp_path / f"utm{EXTENSION[fmt]}"
+    write_points(path, points, format=fmt)
+    restored = read_points(path, format=fmt)
+    error = np.abs(restored - points).max()
+    assert error <= (LAS_ERROR_M if fmt in ("las", "laz") else 0.0), error
+    assert abs(restored[0, 0] - 500000.123) <= LAS_ERROR_M
+
+
+def test_ply_uses_float64_only_when_float32_would_lose_a_millimetre(tmp_path):
+    write_points(tmp_path / "local.ply", local_cloud())
+    write_points(tmp_path / "utm.ply", local_cloud() + UTM_OFFSET_M)
+    local_types = {prop.val_dtype for prop in plyfile.PlyData.read(str(tmp_path / "local.ply"))["vertex"].properties}
+    utm_types = {prop.val_dtype for prop in plyfile.PlyData.read(str(tmp_path / "utm.ply"))["vertex"].properties}
+    assert local_types == {"f4"} and utm_types == {"f8"}
+    assert np.abs(read_points(tmp_path / "local.ply") - local_cloud()).max() <= FLOAT32_MAX_ERROR_M
+
+
+def test_las_header_uses_documented_scale_and_offset(tmp_path):
+    points = local_cloud() + UTM_OFFSET_M
+    write_points(tmp_path / "utm.laz", points)
+    header = laspy.read(tmp_path / "utm.laz").header
+    np.testing.assert_allclose(header.scales, LAS_SCALE_M)
+    np.testing.assert_array_equal(header.offsets, np.floor(points.min(axis=0)))
+    assert (tmp_path / "utm.laz").stat().st_size < 0.8 * write_and_size(tmp_path / "utm.las", points)
+
+
+def write_and_size(path: Path, points: np.ndarray) -> int:
+    write_points(path, points)
+    return path.stat().st_size
+
+
+@pytest.mark.parametrize("fmt", ["bin", "pcd.bin"])
+def test_float32_formats_refuse_utm_coordinates_and_leave_no_file(tmp_path, fmt):
+    path = tmp_path / f"scan{EXTENSION[fmt]}"
+    with pytest.raises(InvalidPointCloudError, match="float32") as excinfo:
+        write_points(path, local_cloud() + UTM_OFFSET_M)
+    assert_single_line_naming(excinfo, path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_extension_detection_and_format_override(tmp_path):
+    points = local_cloud(50)
+    write_points(tmp_path / "sweep.pcd.bin", points)
+    assert (tmp_path / "sweep.pcd.bin").stat().st_size == 50 * 5 * 4  # nuScenes layout, not KITTI
+    assert set(read_point_cloud(tmp_path / "sweep.pcd.bin").attributes) == {"intensity", "ring"}
+    write_points(tmp_path / "scan.bin", points)
+    assert (tmp_path / "scan.bin").stat().st_size == 50 * 4 * 4
+    write_points(tmp_path / "CLOUD.PLY", points)
+    assert read_points(tmp_path / "CLOUD.PLY").shape == (50, 3)
+    write_points(tmp_path / "cloud.dat", points, format="laz")
+    assert np.abs(read_points(tmp_path / "cloud.dat", format=".LAZ") - points).max() <= LAS_ERROR_M
+
+
+def test_write_reports_attributes_a_format_cannot_store(tmp_path):
+    attributes = {"intensity": np.ones(50, np.float32), "ring": np.zeros(50, np.float32)}
+    assert write_points(tmp_path / "scan.bin", local_cloud(50), attributes=attributes) == ()
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / "scan.bin").attributes["reflectance"], 0.0)
+
+
+def test_pcd_reads_multi_count_and_padding_fields(tmp_path):
+    header = ("VERSION 0.7\nFIELDS x y z _ normal\nSIZE 4 4 4 1 4\nTYPE F F F U F\nCOUNT 1 1 1 2 3\n"
+              "WIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA ascii\n")
+    (tmp_path / "multi.pcd").write_text(header + "1 2 3 0 0 0.1 0.2 0.3\n4 5 6 0 0 0.4 0.5 0.6\n")
+    cloud = read_point_cloud(tmp_path / "multi.pcd")
+    np.testing.assert_array_equal(cloud.points, [[1, 2, 3], [4, 5, 6]])
+    assert sorted(cloud.attributes) == ["normal_0", "normal_1", "normal_2"]
+    np.testing.assert_allclose(cloud.attributes["normal_2"], [0.3, 0.6], rtol=1e-6)
+
+
+def test_ply_vertex_list_properties_are_skipped(tmp_path):
+    vertices = np.array([(1.0, 2.0, 3.0, 7, [1, 2]), (4.0, 5.0, 6.0, 8, [3])],
+                        dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("label", "i4"), ("neighbours", object)])
+    element = plyfile.PlyElement.describe(vertices, "vertex", val_types={"neighbours": "i4"})
+    plyfile.PlyData([element], text=True).write(str(tmp_path / "lists.ply"))
+    cloud = read_point_cloud(tmp_path / "lists.ply")
+    np.testing.assert_array_equal(cloud.points, [[1, 2, 3], [4, 5, 6]])
+    assert list(cloud.attributes) == ["label"] and cloud.attributes["label"].tolist() == [7, 8]
+
+
+# ---- real files --------------------------------------------------------------------------------------------------
+
+REAL_FILES = [
+    ("kitti_seq00_scans/000000.bin", 124_668, {"reflectance"}),
+    (NUSCENES_SWEEP, 34_688, {"intensity", "ring"}),
+    ("submaps/kitti_hdl64_6scans.ply", 101_924, set()),
+    ("submaps/nuscenes_hdl32_1scan.ply", 11_777, set()),
+    ("submaps/ouster_os2_128_1scan.ply", 50_194, set()),
+]
+
+
+@pytest.mark.parametrize(("relative", "expected_count", "expected_attributes"), REAL_FILES)
+def test_real_files_read_plausibly(relative, expected_count, expected_attributes):
+    path = REAL_DATA / relative
+    if not path.exists():
+        pytest.skip(f"{path} absent (../shared not available)")
+    cloud = read_point_cloud(path)
+    assert len(cloud) == expected_count
+    assert set(cloud.attributes) == expected_attributes
+    assert np.abs(cloud.points).max() < 150.0  # a LiDAR scan or a 40 m submap, in metres around the sensor
+    if relative.startswith("submaps/"):
+        extent = cloud.points.max(axis=0) - cloud.points.min(axis=0)
+        assert np.all(extent[:2] > 30.0) and np.all(extent[:2] <= 40.0 + 1e-3) and extent[2] <= 15.0 + 1e-3
+    if "reflectance" in cloud.attributes:
+        assert 0.0 <= cloud.attributes["reflectance"].min() and cloud.attributes["reflectance"].max() <= 1.0
+    if "ring" in cloud.attributes:
+        assert set(np.unique(cloud.attributes["ring"])) <= set(range(32))
+
+
+# ---- bad input -------------------------------------------------------------------------------------------------
+
+def write_ply_vertices(path: Path, vertices: np.ndarray, element: str = "vertex") -> None:
+    plyfile.PlyData([plyfile.PlyElement.describe(vertices, element)]).write(str(path))
+
+
+def pcd_text(points: int, width: int, data: str, body: bytes) -> bytes:
+    header = (f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {width}\nHEIGHT 1\n"
+              f"POINTS {points}\nDATA {data}\n")
+    return header.encode() + body
+
+
+def make_bad_file(tmp_path: Path, case: str) -> Path:
+    """Create the bad input `case`; returns its path."""
+    xyz = local_cloud(10).astype(np.float32)
+    if case == "missing":
+        return tmp_path / "missing.ply"
+    if case == "directory":
+        (tmp_path / "folder.ply").mkdir()
+        return tmp_path / "folder.ply"
+    files = {
+        "unknown extension": ("cloud.xyz", b"1 2 3\n"),
+        "bin size not a multiple of 16": ("scan.bin", np.zeros(10, "<f4").tobytes() + b"\0\0"),
+        "pcd.bin size not a multiple of 20": ("sweep.pcd.bin", np.zeros(12, "<f4").tobytes()),
+        "empty bin": ("empty.bin", b""),
+        "nan in bin": ("nan.bin", np.array([[1, 2, 3, 0], [np.nan, 2, 3, 0]], "<f4").tobytes()),
+        "inf in npy": ("inf.npy", None),
+        "npy with two columns": ("two.npy", None),
+        "npy of objects": ("objects.npy", None),
+        "absurd coordinates in npy": ("far.npy", None),
+        "ply garbage": ("garbage.ply", b"not a ply file at all\n"),
+        "pcd garbage": ("garbage.pcd", bytes(range(128, 256)) + b"\n"),
+        "pcd more points than data": ("short.pcd", pcd_text(12, 12, "binary", xyz.tobytes())),
+        "pcd fewer points than data": ("long.pcd", pcd_text(8, 8, "binary", xyz.tobytes())),
+        "pcd width disagrees with points": ("wh.pcd", pcd_text(10, 9, "binary", xyz.tobytes())),
+        "pcd ascii more points than rows": ("rows.pcd", pcd_text(11, 11, "ascii", b"1 2 3\n" * 10)),
+        "pcd ascii wrong column count": ("cols.pcd", pcd_text(2, 2, "ascii", b"1 2 3 4\n5 6 7 8\n")),
+        "pcd binary_compressed": ("lzf.pcd", pcd_text(10, 10, "binary_compressed", b"\0" * 64)),
+        "pcd without z": ("noz.pcd", b"FIELDS x y\nSIZE 4 4\nTYPE F F\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2\n"),
+        "las garbage": ("garbage.las", b"LASF" + bytes(100)),
+    }
+    name, content = files[case]
+    path = tmp_path / name
+    if case == "inf in npy":
+        np.save(path, np.array([[1.0, 2.0, np.inf]]))
+    elif case == "npy with two columns":
+        np.save(path, np.ones((5, 2)))
+    elif case == "npy of objects":
+        np.save(path, np.array([[1, "a", None]], dtype=object), allow_pickle=True)
+    elif case == "absurd coordinates in npy":
+        np.save(path, np.array([[1.0, 2.0, 3.0], [2e7, 0.0, 0.0]]))
+    else:
+        path.write_bytes(content)
+    return path
+
+
+BAD_INPUTS = {
+    "missing": PointCloudFormatError,
+    "directory": PointCloudFormatError,
+    "unknown extension": PointCloudFormatError,
+    "bin size not a multiple of 16": PointCloudFormatError,
+    "pcd.bin size not a multiple of 20": PointCloudFormatError,
+    "empty bin": InvalidPointCloudError,
+    "nan in bin": InvalidPointCloudError,
+    "inf in npy": InvalidPointCloudError,
+    "npy with two columns": PointCloudFormatError,
+    "npy of objects": PointCloudFormatError,
+    "absurd coordinates in npy": InvalidPointCloudError,
+    "ply garbage": PointCloudFormatError,
+    "pcd garbage": PointCloudFormatError,
+    "pcd more points than data": PointCloudFormatError,
+    "pcd fewer points than data": PointCloudFormatError,
+    "pcd width disagrees with points": PointCloudFormatError,
+    "pcd ascii more points than rows": PointCloudFormatError,
+    "pcd ascii wrong column count": PointCloudFormatError,
+    "pcd binary_compressed": PointCloudFormatError,
+    "pcd without z": PointCloudFormatError,
+    "las garbage": PointCloudFormatError,
+}
+
+
+@pytest.mark.parametrize(("case", "error"), BAD_INPUTS.items(), ids=list(BAD_INPUTS))
+def test_bad_input_raises_typed_error_naming_the_file(tmp_path, case, error):
+    path = make_bad_file(tmp_path, case)
+    with pytest.raises(error) as excinfo:
+        read_points(path)
+    assert_single_line_naming(excinfo, path)
+
+
+def test_ply_without_xyz_or_vertex_element(tmp_path):
+    write_ply_vertices(tmp_path / "noz.ply", np.zeros(4, dtype=[("x", "f4"), ("y", "f4"), ("w", "f4")]))
+    with pytest.raises(PointCloudFormatError, match="no z property"):
+        read_points(tmp_path / "noz.ply")
+    write_ply_vertices(tmp_path / "faces.ply", np.zeros(4, dtype=[("x", "f4")]), element="face")
+    with pytest.raises(PointCloudFormatError, match="no vertex element"):
+        read_points(tmp_path / "faces.ply")
+
+
+@pytest.mark.parametrize("fmt", ["ply", "las", "laz", "npy"])
+def test_truncated_files_raise_format_error(tmp_path, fmt):
+    path = tmp_path / f"cloud{EXTENSION[fmt]}"
+    write_points(path, local_cloud(200))
+    data = path.read_bytes()
+    # LAS is cut at a record boundary (20 bytes per point): only the header's point count can reveal it
+    path.write_bytes(data[: len(data) - (200 if fmt == "las" else len(data) // 3)])
+    with pytest.raises(PointCloudFormatError) as excinfo:
+        read_points(path)
+    assert_single_line_naming(excinfo, path)
+
+
+def test_unknown_format_name(tmp_path):
+    with pytest.raises(PointCloudFormatError, match="unknown point-cloud format 'xyz'"):
+        write_points(tmp_path / "cloud.ply", local_cloud(), format="xyz")
+
+
+# ---- validation and writing ------------------------------------------------------------------------------------
+
+def test_validate_points_returns_float64_and_rejects_bad_clouds():
+    checked = validate_points(np.arange(12, dtype=np.int32).reshape(4, 3))
+    assert checked.dtype == np.float64 and checked.flags.c_contiguous and checked[3, 2] == 11.0
+    bad = {
+        "shape": np.zeros((5, 4)),
+        "empty": np.zeros((0, 3)),
+        "NaN": np.array([[0.0, np.nan, 0.0]]),
+        "infinite": np.array([[0.0, 0.0, -np.inf]]),
+        "absurd": np.array([[0.0, 0.0, 1e7]]),
+        "dtype": np.array([["a", "b", "c"]]),
+    }
+    for label, points in bad.items():
+        with pytest.raises(InvalidPointCloudError, match=r"^my cloud: ") as excinfo:
+            validate_points(points, name="my cloud")
+        assert "\n" not in str(excinfo.value), label
+
+
+@pytest.mark.parametrize(
+    ("attributes", "message"),
+    [
+        ({"intensity": np.zeros(3)}, "shape"),
+        ({"x": np.zeros(10)}, "bad attribute name"),
+        ({"my name": np.zeros(10)}, "bad attribute name"),
+        ({"label": np.array(["a"] * 10)}, "not numeric"),
+    ],
+)
+def test_write_rejects_bad_attributes(tmp_path, attributes, message):
+    with pytest.raises(InvalidPointCloudError, match=message):
+        write_points(tmp_path / "cloud.ply", local_cloud(10), attributes=attributes)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_las_refuses_lossy_or_clashing_attributes(tmp_path):
+    with pytest.raises(InvalidPointCloudError, match="LAS intensity"):
+        write_points(tmp_path / "cloud.las", local_cloud(10), attributes={"intensity": np.full(10, 0.5)})
+    with pytest.raises(InvalidPointCloudError, match="standard LAS field"):
+        write_points(tmp_path / "cloud.las", local_cloud(10), attributes={"classification": np.ones(10, np.uint8)})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_write_keeps_the_old_file_and_leaves_no_temp(tmp_path):
+    path = tmp_path / "scan.bin"
+    write_points(path, local_cloud(20))
+    before = path.read_bytes()
+    with pytest.raises(InvalidPointCloudError):
+        write_points(path, local_cloud(20) + UTM_OFFSET_M)
+    assert path.read_bytes() == before and list(tmp_path.iterdir()) == [path]
+
+
+def test_write_into_missing_directory_or_onto_a_directory(tmp_path):
+    with pytest.raises(PointCloudFormatError, match="cannot write") as excinfo:
+        write_points(tmp_path / "absent" / "cloud.ply", local_cloud())
+    assert_single_line_naming(excinfo, tmp_path / "absent" / "cloud.ply")
+    (tmp_path / "folder.ply").mkdir()
+    with pytest.raises(PointCloudFormatError, match="cannot write"):
+        write_points(tmp_path / "folder.ply", local_cloud())
+    assert [entry.name for entry in tmp_path.iterdir()] == ["folder.ply"]
+
+
+def test_atomic_helpers(tmp_path):
+    target = tmp_path / "out.msq"
+    atomic_write_bytes(target, b"first")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert target.read_bytes() == b"first" and target.stat().st_mode & 0o777 == 0o666 & ~umask
+    with pytest.raises(RuntimeError):
+        with atomic_output(target) as temp:
+            assert temp.parent == tmp_path and temp != target
+            temp.write_bytes(b"half")
+            raise RuntimeError("writer failed")
+    assert target.read_bytes() == b"first" and list(tmp_path.iterdir()) == [target]
+
+
+def test_point_cloud_dataclass():
+    cloud = PointCloud(np.zeros((4, 3)))
+    assert len(cloud) == 4 and cloud.attributes == {}
+
+
+# ---- CLI -------------------------------------------------------------------------------------------------------
+
+MAPSQUEEZE = Path(sys.executable).parent / "mapsqueeze"
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    if not MAPSQUEEZE.exists():
+        pytest.skip(f"{MAPSQUEEZE} not installed")
+    return subprocess.run([str(MAPSQUEEZE), *args], capture_output=True, text=True, timeout=120)
+
+
+def test_cli_convert(tmp_path):
+    source, target = tmp_path / "scan.bin", tmp_path / "scan.laz"
+    write_points(source, local_cloud(321), attributes={"reflectance": np.full(321, 0.25, np.float32)})
+    result = run_cli("convert", str(source), str(target))
+    assert result.returncode == 0, result.stderr
+    assert "321 points" in result.stdout
+    assert np.abs(read_points(target) - read_points(source)).max() <= LAS_ERROR_M
+    missing = run_cli("convert", str(tmp_path / "absent.ply"), str(tmp_path / "out.ply"))
+    assert missing.returncode == 2
+    assert missing.stderr.startswith("error: ") and missing.stderr.count("\n") == 1
+    assert "absent.ply" in missing.stderr and not (tmp_path / "out.ply").exists()
