@@ -6,6 +6,7 @@ coordinates are normalised (metres / map size), voxel keys and tie-breaking dist
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -54,7 +55,7 @@ def radius_neighbors(
     result = np.full((len(queries), width), len(source), dtype=np.int64)
     if width == 0:
         return result
-    flat = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbor_lists])
+    flat = np.fromiter(itertools.chain.from_iterable(neighbor_lists), dtype=np.int64, count=int(counts.sum()))
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     kept = np.minimum(counts, max_neighbors)
     rows = np.repeat(np.arange(len(queries)), kept)
