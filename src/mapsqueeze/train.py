@@ -37,6 +37,9 @@ class TrainConfig:
     val_limit: int | None = None  # validate on at most this many submaps
 
 
+CLOUD_SUFFIXES = {".ply", ".pcd", ".npy", ".bin", ".las", ".laz"}
+
+
 @dataclass
 class Sample:
     """One training cloud in metres, relative to its own minimum corner (float32)."""
@@ -46,27 +49,19 @@ class Sample:
 
 
 def load_samples(dataset: Path, splits: tuple[str, ...]) -> list[Sample]:
-    """Submaps of a dataset directory (manifest.json written by `build-map`/`simulate`) in the given splits, or
-    every point-cloud file of a plain folder (all splits)."""
+    """Submaps of a dataset directory (manifest.json written by `build-map`/`simulate`/`tile`) in the given
+    splits, or every point-cloud file of a plain folder (all splits)."""
+    from mapsqueeze.data.mapping import MANIFEST_NAME, read_dataset
     from mapsqueeze.io import read_points
 
     dataset = Path(dataset)
-    manifest = dataset / "manifest.json"
-    if manifest.is_file():
-        try:
-            entries = json.loads(manifest.read_text())["submaps"]
-            files = [dataset / e["file"] for e in entries if e.get("split", "train") in splits]
-        except (json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise MapsqueezeError(f"{manifest}: not a dataset manifest ({exc})") from None
+    if (dataset / MANIFEST_NAME).is_file():
+        clouds = [(r.path.stem, r.local_points()) for r in read_dataset(dataset).records if r.split in splits]
     elif dataset.is_dir():
-        files = sorted(p for p in dataset.iterdir() if p.suffix in {".ply", ".pcd", ".npy", ".bin", ".las", ".laz"})
+        clouds = [(p.stem, read_points(p)) for p in sorted(dataset.iterdir()) if p.suffix in CLOUD_SUFFIXES]
     else:
         raise MapsqueezeError(f"dataset {dataset} not found")
-    samples = []
-    for f in files:
-        pts = read_points(f)
-        samples.append(Sample(f.stem, (pts - pts.min(axis=0)).astype(np.float32)))
-    return samples
+    return [Sample(name, (pts - pts.min(axis=0)).astype(np.float32)) for name, pts in clouds if len(pts)]
 
 
 def augment_points(points: np.ndarray, rng: np.random.Generator, extent: float) -> np.ndarray:

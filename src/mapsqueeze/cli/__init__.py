@@ -1,22 +1,35 @@
 """Command-line entry point: `mapsqueeze COMMAND ...`.
 
 Each module imported below adds its commands to the single typer app in `cli.app`; every command is a thin
-call into the library. Library errors (MapsqueezeError) become one `error: ...` line and exit code 2.
+call into the library. Library errors (MapsqueezeError) and wrong flags become one `error: ...` line and exit
+code 2.
 """
 
 import sys
 
+import typer
+
 from mapsqueeze.cli.app import app
-from mapsqueeze.cli import data_cmds, eval_cmds, io_cmds, model_cmds  # noqa: F401  (registers commands)
+from mapsqueeze.cli import (  # noqa: F401  (registers commands)
+    bench_cmds, codec_cmds, data_cmds, eval_cmds, io_cmds, model_cmds,
+)
 from mapsqueeze.errors import MapsqueezeError
+
+
+def _fail(message: str, code: int = 2) -> None:
+    print(f"error: {' '.join(message.split())}", file=sys.stderr)
+    sys.exit(code)
 
 
 def main() -> None:
     try:
-        app(standalone_mode=True)
+        result = app(standalone_mode=False)
     except MapsqueezeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        sys.exit(130)
+        _fail(str(exc))
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.TyperException as exc:  # usage errors: unknown option, bad value, missing argument
+        _fail(f"{exc.format_message()} (see --help)", getattr(exc, "exit_code", 2))
+    except (KeyboardInterrupt, typer.Abort):
+        _fail("interrupted", 130)
+    sys.exit(result if isinstance(result, int) else 0)

@@ -1,0 +1,236 @@
+"""Rate-distortion benchmark: every codec and setting on every cloud -> CSV, markdown table, plots.
+
+mapsqueeze itself runs through the same `mapsqueeze.compress` / `mapsqueeze.decompress` calls as the CLI.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapsqueeze.errors import MapsqueezeError
+
+REFERENCE_DIR = Path(__file__).resolve().parents[3] / "shared" / "reference" / "depoco"
+"""The reference checkpoints when the project sits beside ../shared (used by the `depoco-ref` codec)."""
+
+CLASSICAL = ("draco", "octree", "octree-ac", "gpcc")
+
+
+@dataclass
+class Row:
+    cloud: str
+    codec: str
+    setting: str
+    n_points: int
+    n_bytes: int
+    bpp: float
+    d_e: float
+    d_perp: float
+    iou: float
+    n_decoded: int
+    encode_s: float
+    decode_s: float
+
+
+@dataclass
+class Cloud:
+    name: str
+    points: np.ndarray  # (N, 3) float64 world metres
+    origin: np.ndarray  # lower corner of its box: mapsqueeze tiles start here
+
+
+def collect_clouds(inputs: list[Path], split: str = "test") -> Iterator[Cloud]:
+    """Clouds from dataset folders (the given split), plain folders (every cloud file) and single files."""
+    from mapsqueeze.data.mapping import MANIFEST_NAME, read_dataset
+    from mapsqueeze.io import read_points
+    from mapsqueeze.train import CLOUD_SUFFIXES
+
+    for path in inputs:
+        if (path / MANIFEST_NAME).is_file():
+            for record in read_dataset(path).split(split):
+                submap = record.load()
+                yield Cloud(f"{path.name}/{record.path.stem}", submap.points, record.bounds[0])
+        elif path.is_dir():
+            for file in sorted(p for p in path.iterdir() if p.suffix in CLOUD_SUFFIXES):
+                points = read_points(file)
+                yield Cloud(file.stem, points, points.min(axis=0))
+        else:
+            points = read_points(path)
+            yield Cloud(path.stem, points, points.min(axis=0))
+
+
+@dataclass
+class Variant:
+    """One codec at one setting: encode(points, origin) -> bytes and decode(bytes) -> points."""
+
+    codec: str
+    setting: str
+    encode: Callable[[np.ndarray, np.ndarray], bytes]
+    decode: Callable[[bytes], np.ndarray]
+
+
+def _learned_variants(codec: str, models: dict[str, object], precision: str) -> list[Variant]:
+    from mapsqueeze.api import compress, decompress
+
+    return [Variant(codec, f"{name},{precision}",
+                    lambda pts, origin, m=model: compress(pts, model=m, precision=precision, origin=origin),
+                    lambda data, m=model: decompress(data, model=m))
+            for name, model in models.items()]
+
+
+def state_sha256(network) -> str:
+    """SHA-256 of a network's tensors (identifies an in-memory model such as an imported reference)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for key, value in sorted(network.state_dict().items()):
+        digest.update(key.encode())
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def build_variants(codecs: list[str], models: list[str], precision: str, log: Callable[[str], None]) -> list[Variant]:
+    """Every (codec, setting) to run; unavailable codecs are skipped with a message."""
+    from mapsqueeze.baselines import BASELINES, get_baseline, setting_label
+    from mapsqueeze.model import import_reference, load_model, shipped_models
+    from mapsqueeze.model.autoencoder import CompressionModel
+
+    variants: list[Variant] = []
+    for codec in codecs:
+        if codec == "mapsqueeze":
+            names = models or shipped_models()
+            if not names:
+                log("mapsqueeze: no shipped model; pass --models DIR,... (skipped)")
+            variants += _learned_variants(codec, {Path(n).name: load_model(n) for n in names}, precision)
+        elif codec == "depoco-ref":
+            refs = sorted(p for p in REFERENCE_DIR.glob("e[0-3]") if (p / "enc_best.pth").is_file())
+            if not refs:
+                log(f"depoco-ref: reference checkpoints not found in {REFERENCE_DIR} (skipped)")
+            loaded = {}
+            for p in refs:
+                network = import_reference(p)
+                loaded[p.name] = CompressionModel(network, f"depoco-{p.name}", state_sha256(network))
+            variants += _learned_variants(codec, loaded, "f16")
+        elif codec in BASELINES:
+            baseline = get_baseline(codec)
+            if not baseline.available():
+                log(f"{codec}: unavailable ({baseline.requirement}) (skipped)")
+                continue
+            for setting in baseline.settings():
+                variants.append(Variant(codec, setting_label(setting),
+                                        lambda pts, origin, b=baseline, s=setting: b.encode(pts - origin, s),
+                                        lambda data, b=baseline: b.decode(data)))
+        else:
+            raise MapsqueezeError(f"unknown codec {codec!r} (mapsqueeze, depoco-ref, {', '.join(BASELINES)})")
+    return variants
+
+
+def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: list[str] | None = None,
+                  precision: str = "q", split: str = "test", log: Callable[[str], None] = print,
+                  progress: Callable[[str], None] | None = None) -> list[Row]:
+    """Run every variant on every cloud; write results.csv, results.md and rd_*.png into out_dir."""
+    from mapsqueeze.geometry.normals import normals_pca
+    from mapsqueeze.metrics import evaluate
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    variants = build_variants(codecs, models or [], precision, log)
+    rows: list[Row] = []
+    for cloud in collect_clouds(inputs, split):
+        normals = normals_pca(cloud.points)
+        for v in variants:
+            if progress:
+                progress(f"{cloud.name}: {v.codec} {v.setting}")
+            t0 = time.perf_counter()
+            data = v.encode(cloud.points, cloud.origin)
+            t1 = time.perf_counter()
+            decoded = v.decode(data)
+            t2 = time.perf_counter()
+            if v.codec in CLASSICAL:
+                decoded = decoded + cloud.origin
+            m = evaluate(cloud.points, decoded, n_bytes=len(data), gt_normals=normals)
+            rows.append(Row(cloud.name, v.codec, v.setting, len(cloud.points), len(data), m.bpp, m.d_e, m.d_perp,
+                            m.iou, m.n_rec, t1 - t0, t2 - t1))
+        write_results(rows, out_dir)
+    if not rows:
+        raise MapsqueezeError("nothing to benchmark (no clouds or no available codec)")
+    write_results(rows, out_dir)
+    return rows
+
+
+def summarise(rows: list[Row]) -> list[dict]:
+    """Mean of every metric per (codec, setting) over the clouds."""
+    groups: dict[tuple[str, str], list[Row]] = {}
+    for r in rows:
+        groups.setdefault((r.codec, r.setting), []).append(r)
+    out = []
+    for (codec, setting), rs in groups.items():
+        out.append({"codec": codec, "setting": setting, "clouds": len(rs),
+                    **{k: float(np.mean([getattr(r, k) for r in rs]))
+                       for k in ("bpp", "d_e", "d_perp", "iou", "encode_s", "decode_s")}})
+    return sorted(out, key=lambda s: (s["codec"], s["bpp"]))
+
+
+def classical_d_e_at(summary: list[dict], bpp: float) -> float:
+    """D_e of the best classical codec at this bpp (Pareto front of all classical settings, log-bpp interpolation)."""
+    from mapsqueeze.baselines.rd import distortion_at
+
+    classical = [s for s in summary if s["codec"] in CLASSICAL]
+    if not classical:
+        return float("nan")
+    return float(distortion_at([s["bpp"] for s in classical], [s["d_e"] for s in classical], bpp))
+
+
+def write_results(rows: list[Row], out_dir: Path) -> None:
+    from mapsqueeze.io import atomic_output
+
+    with atomic_output(out_dir / "results.csv") as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
+        writer.writeheader()
+        writer.writerows(asdict(r) for r in rows)
+    summary = summarise(rows)
+    lines = ["| codec | setting | clouds | bpp | D_e (m) | D_perp (m) | IoU | encode (s) | decode (s) | "
+             "best classical D_e at this bpp (m) |", "|---" * 10 + "|"]
+    for s in summary:
+        ref = "" if s["codec"] in CLASSICAL else f"{classical_d_e_at(summary, s['bpp']):.4f}"
+        lines.append(f"| {s['codec']} | {s['setting']} | {s['clouds']} | {s['bpp']:.4f} | {s['d_e']:.4f} | "
+                     f"{s['d_perp']:.4f} | {s['iou']:.3f} | {s['encode_s']:.2f} | {s['decode_s']:.2f} | {ref} |")
+    with atomic_output(out_dir / "results.md") as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
+    plot_rd(summary, out_dir)
+
+
+def plot_rd(summary: list[dict], out_dir: Path) -> None:
+    """D_e, D_perp and IoU against bpp (log x), one line per codec (means over clouds)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mapsqueeze.baselines.rd import pareto_front
+    from mapsqueeze.io import atomic_output
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    for ax, key, label in zip(axes, ("d_e", "d_perp", "iou"), ("D_e (m)", "D_perp (m)", "IoU")):
+        for codec in sorted({s["codec"] for s in summary}):
+            pts = [s for s in summary if s["codec"] == codec]
+            bpp = np.array([s["bpp"] for s in pts])
+            val = np.array([s[key] for s in pts])
+            if codec in CLASSICAL and len(pts) > 2:  # show the codec's Pareto front, not every setting
+                front = pareto_front(bpp, val if key != "iou" else -val)
+                bpp, val = bpp[front], val[front]
+            order = np.argsort(bpp)
+            ax.plot(bpp[order], val[order], marker="o", label=codec)
+        ax.set_xscale("log")
+        ax.set_xlabel("bits per point")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend()
+    fig.tight_layout()
+    with atomic_output(out_dir / "rd.png") as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)

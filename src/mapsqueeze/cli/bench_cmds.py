@@ -1,0 +1,39 @@
+"""`mapsqueeze bench`: the rate-distortion benchmark against the classical codecs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+
+from mapsqueeze.cli.app import app
+from mapsqueeze.errors import MapsqueezeError
+
+console = Console()
+
+
+@app.command("bench")
+def bench_cmd(
+    inputs: list[Path] = typer.Argument(..., help="Dataset folders (manifest.json), folders of clouds, or files"),
+    codecs: str = typer.Option("mapsqueeze,depoco-ref,draco,octree,gpcc", help="Comma-separated codecs"),
+    out: Path = typer.Option(Path("results"), "-o", "--out", help="Output folder (CSV, markdown, plots)"),
+    models: Optional[str] = typer.Option(None, help="mapsqueeze models (names or folders, comma-separated); "
+                                                    "default: every shipped model"),
+    precision: str = typer.Option("q", help="Embedding precision of mapsqueeze: q, f16 or f32"),
+    split: str = typer.Option("test", help="Split of dataset folders to run on"),
+):
+    """Run every codec and setting on every cloud: bytes, bpp, D_e, D_perp, IoU, encode/decode seconds."""
+    from mapsqueeze.bench import run_benchmark
+
+    for path in inputs:
+        if not path.exists():
+            raise MapsqueezeError(f"{path}: no such file or folder")
+    with console.status("benchmark") as status:
+        rows = run_benchmark(inputs, [c.strip() for c in codecs.split(",") if c.strip()], out,
+                             models=[m.strip() for m in models.split(",")] if models else None,
+                             precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
+                             progress=lambda m: status.update(m))
+    console.print((out / "results.md").read_text())
+    console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd.png")
