@@ -78,7 +78,7 @@ def _learned_variants(codec: str, models: dict[str, object], precision: str) -> 
     from mapsqueeze.api import compress, decompress
 
     return [Variant(codec, f"{name},{precision}",
-                    lambda pts, origin, m=model: compress(pts, model=m, precision=precision, origin=origin),
+                    lambda pts, origin, m=model: compress(pts, model=m, precision=precision),
                     lambda data, m=model: decompress(data, model=m))
             for name, model in models.items()]
 

@@ -64,6 +64,7 @@ def train_cmd(
     init: Optional[Path] = typer.Option(None, help="Initialise matching weights from another model folder"),
     density_a: Optional[float] = typer.Option(None, help="Density law a (default: the paper's 0.006)"),
     density_b: Optional[float] = typer.Option(None, help="Density law b (default: the paper's 1.764)"),
+    val_limit: Optional[int] = typer.Option(None, min=1, help="Validate on at most this many submaps"),
     seed: int = typer.Option(0),
     device: str = typer.Option("cpu", help="cpu or cuda"),
     no_resume: bool = typer.Option(False, "--no-resume", help="Start over even if out/last exists"),
@@ -77,7 +78,7 @@ def train_cmd(
     overrides = {k: v for k, v in (("density_a", density_a), ("density_b", density_b)) if v is not None}
     model_config = ModelConfig.for_rate(rate, **overrides)
     cfg = TrainConfig(epochs=epochs, batch_size=batch_size, max_lr=max_lr, beta=beta, max_steps=max_steps,
-                      max_minutes=max_minutes, seed=seed)
+                      max_minutes=max_minutes, val_limit=val_limit, seed=seed)
     with Progress(TextColumn("epoch {task.fields[epoch]} step {task.completed}"), BarColumn(),
                   TextColumn("loss {task.fields[loss]:.5f}"), TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("train", total=max_steps, epoch=0, loss=float("nan"))

@@ -1,0 +1,117 @@
+"""End-to-end codec speed, memory and rate on a multi-tile map, file to file, on 2 CPU cores.
+
+Run: `.venv/bin/python benchmarks/bench_codec.py --model DIR [--copies 3] [--precision q f16]`
+(figures go to BENCHMARKS.md, "## Codec"). The map is copies of the real KITTI submap
+(../shared/data/real/submaps/kitti_hdl64_6scans.ply), mirrored four ways, one per tile of a copies x copies grid
+at UTM coordinates (optionally shifted against the tile grid), written as PLY. Compression and decompression each
+run in a fresh process (`mapsqueeze.compress_file` / `decompress_file`, what the CLI calls) pinned to 2 cores, so
+their peak resident memory (ru_maxrss, including the ~0.4 GB of torch and the model) is measured separately.
+D_e compares the decoded map with the input (mapsqueeze.metrics.d_euclidean).
+"""
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+KITTI_SUBMAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "submaps" / "kitti_hdl64_6scans.ply"
+UTM_OFFSET = np.array([500_000.0, 4_000_000.0, 50.0])  # on the 40 x 40 x 15 m tile grid (z tile 45-60 m)
+CORES = 2
+
+
+def build_map(copies: int, shift_m: tuple[float, float, float]) -> np.ndarray:
+    """copies^2 mirrored copies of the KITTI submap, one per 40 m tile of a UTM-anchored grid, then shifted.
+
+    With shift 0 each copy fills one tile like the paper's submaps; a shift makes copies straddle tile borders.
+    """
+    from mapsqueeze.io import read_points
+
+    submap = read_points(KITTI_SUBMAP)
+    local = submap - submap.min(axis=0)  # 40.0 x 38.3 x 6.9 m
+    extent = local.max(axis=0)
+    parts = []
+    for i in range(copies):
+        for j in range(copies):
+            mirrored = local.copy()
+            for axis, flip in enumerate(((i + j) % 2, (i // 2 + j) % 2)):  # four variants, so copies differ
+                if flip:
+                    mirrored[:, axis] = extent[axis] - mirrored[:, axis]
+            parts.append(mirrored + [40.0 * i, 40.0 * j, 0.0])
+    return np.concatenate(parts) + UTM_OFFSET + shift_m
+
+
+def _stage(args) -> None:
+    """Child process: one compress or decompress, timed; prints JSON."""
+    os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:CORES])
+    import torch
+
+    torch.set_num_threads(CORES)
+    import mapsqueeze
+
+    start = time.perf_counter()
+    if args.stage == "compress":
+        summary = mapsqueeze.compress_file(args.input, args.output, model=args.model, precision=args.precision)
+        result = {"bytes": summary.file_bytes, "tiles": summary.n_tiles, "raw_tiles": summary.n_raw_tiles,
+                  "points": summary.n_points}
+    else:
+        result = {"points": mapsqueeze.decompress_file(args.input, args.output, model=args.model)}
+    result["seconds"] = time.perf_counter() - start
+    result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps(result))
+
+
+def _run_stage(stage: str, source: Path, target: Path, model: str, precision: str) -> dict:
+    command = [sys.executable, __file__, "--stage", stage, "--input", str(source), "--output", str(target),
+               "--model", model, "--precision", precision]
+    done = subprocess.run(command, check=True, capture_output=True, text=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True, help="model name or directory (e.g. an imported e1)")
+    parser.add_argument("--copies", type=int, default=3, help="map of copies x copies KITTI submaps")
+    parser.add_argument("--shift", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("DX", "DY", "DZ"),
+                        help="shift of the map against the tile grid (metres)")
+    parser.add_argument("--precision", nargs="+", default=["q", "f16"])
+    parser.add_argument("--stage", choices=["compress", "decompress"], help=argparse.SUPPRESS)
+    parser.add_argument("--input", help=argparse.SUPPRESS)
+    parser.add_argument("--output", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.stage:
+        args.precision = args.precision[0]
+        _stage(args)
+        return
+    from mapsqueeze.io import read_points, write_points
+    from mapsqueeze.metrics import d_euclidean
+
+    points = build_map(args.copies, args.shift)
+    print(f"map: {args.copies}x{args.copies} KITTI submap copies shifted by {args.shift} m, {len(points):,} points, "
+          f"model {args.model}, {CORES} cores, load average {os.getloadavg()[0]:.1f}")
+    print("| precision | tiles (raw) | bytes | bpp | compress s | compress pts/s | compress peak MB "
+          "| decompress s | decompress pts/s | decompress peak MB | D_e (m) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        source = Path(tmp) / "map.ply"
+        write_points(source, points)
+        for precision in args.precision:
+            msq, decoded_path = Path(tmp) / f"map_{precision}.msq", Path(tmp) / f"decoded_{precision}.npy"
+            packed = _run_stage("compress", source, msq, args.model, precision)
+            unpacked = _run_stage("decompress", msq, decoded_path, args.model, precision)
+            d_e = d_euclidean(points, read_points(decoded_path))
+            print(f"| {precision} | {packed['tiles']} ({packed['raw_tiles']}) | {packed['bytes']:,} "
+                  f"| {8 * packed['bytes'] / len(points):.4f} | {packed['seconds']:.1f} "
+                  f"| {len(points) / packed['seconds']:,.0f} | {packed['peak_rss_mb']:,.0f} "
+                  f"| {unpacked['seconds']:.1f} | {unpacked['points'] / unpacked['seconds']:,.0f} "
+                  f"| {unpacked['peak_rss_mb']:,.0f} | {d_e:.4f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""Public Python API: compress whole maps to .msq bytes or files and back.
+
+    data = mapsqueeze.compress(points)                   # (N, 3) float64 metres -> bytes (model "e1", precision q)
+    cloud = mapsqueeze.decompress(data)                  # -> (about N, 3) float64 metres
+    mapsqueeze.compress_file("map.ply", "map.msq")
+    mapsqueeze.decompress_file("map.msq", "out.las", bbox=(x0, y0, z0, x1, y1, z1))
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapsqueeze.codec.compress import ProgressCallback, compress_map
+from mapsqueeze.codec.container import TileCoding, open_container
+from mapsqueeze.codec.decompress import decompress_map, tile_world_bounds
+from mapsqueeze.codec.embedding import Precision
+from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.io import atomic_write_bytes, read_points, write_points
+
+DEFAULT_MODEL = "e1"
+DEFAULT_PRECISION = "q"
+
+
+def _model(model):
+    """A CompressionModel as is, or load one by shipped name or directory."""
+    if isinstance(model, (str, os.PathLike)):
+        from mapsqueeze.model import load_model
+
+        return load_model(model)
+    return model
+
+
+def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision = DEFAULT_PRECISION, *,
+             progress: ProgressCallback | None = None) -> bytes:
+    """(N, 3) float64 map points (metres, e.g. UTM) -> .msq bytes.
+
+    model: shipped name (e0..e3), model directory or loaded CompressionModel. precision: f32, f16 or q.
+    progress(done, total) is called after each tile.
+    """
+    precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
+    return compress_map(points, _model(model), precision, progress=progress)
+
+
+def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
+               density: float | None = None, n_points: int | None = None,
+               progress: ProgressCallback | None = None) -> np.ndarray:
+    """.msq bytes (or a .msq file path) -> (K, 3) float64 world points.
+
+    By default every tile gets back its original point count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
+    tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
+    choose another density. model defaults to the one named in the file; its weights must match the file's.
+    """
+    return decompress_map(data, model, bbox, density, n_points, progress)
+
+
+@dataclass(frozen=True)
+class ContainerInfo:
+    """Summary of a .msq file (`mapsqueeze info`)."""
+
+    file_bytes: int
+    header_bytes: int  # header, tile table and CRCs
+    model_id: str
+    weights_sha256: str
+    precision: str
+    subsampling_dist_m: float
+    tile_size: tuple[float, float, float]
+    origin: tuple[float, float, float]
+    n_points: int
+    n_tiles: int
+    n_raw_tiles: int
+    bounds: np.ndarray  # (2, 3) world box of all tiles' points (metres)
+
+    @property
+    def bits_per_point(self) -> float:
+        return 8.0 * self.file_bytes / self.n_points
+
+
+def info(source: bytes | str | os.PathLike) -> ContainerInfo:
+    """Read the header and tile table of a .msq buffer or file (payloads are not read)."""
+    reader, stream = open_container(source)
+    with stream:
+        header = reader.header
+        boxes = np.array([tile_world_bounds(header, entry) for entry in reader.entries])
+        return ContainerInfo(
+            file_bytes=reader.file_size,
+            header_bytes=reader.header_bytes(),
+            model_id=header.model_id,
+            weights_sha256=header.weights_sha256,
+            precision=header.precision.name,
+            subsampling_dist_m=header.subsampling_dist_m,
+            tile_size=header.tile_size,
+            origin=header.origin,
+            n_points=header.n_points,
+            n_tiles=header.n_tiles,
+            n_raw_tiles=sum(entry.coding is TileCoding.raw for entry in reader.entries),
+            bounds=np.stack([boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)]),
+        )
+
+
+def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=DEFAULT_MODEL,
+                  precision: str | Precision = DEFAULT_PRECISION, *,
+                  progress: ProgressCallback | None = None) -> ContainerInfo:
+    """Read a point-cloud file, compress it, write the .msq atomically; returns the written file's summary."""
+    data = compress(read_points(input_path), model, precision, progress=progress)
+    atomic_write_bytes(output_path, data)
+    return info(data)
+
+
+def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, *, model=None,
+                    bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
+                    progress: ProgressCallback | None = None) -> int:
+    """Decode a .msq file (seeking to the tiles needed) and write the points atomically; returns the count."""
+    points = decompress(input_path, model=model, bbox=bbox, density=density, n_points=n_points, progress=progress)
+    if not len(points):
+        raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
+    write_points(output_path, points)
+    return len(points)

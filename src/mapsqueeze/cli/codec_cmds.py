@@ -1,0 +1,102 @@
+"""`mapsqueeze compress`, `decompress`, `info`: whole maps to and from .msq containers."""
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from mapsqueeze import api
+from mapsqueeze.cli.app import app
+from mapsqueeze.errors import MapsqueezeError
+
+
+@contextmanager
+def _tile_progress(description: str) -> Iterator:
+    """A progress(done, total) callback drawing a rich bar on stderr for maps of more than one tile."""
+    bar = Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TextColumn("tiles"),
+                   TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+    task = None
+
+    def update(done: int, total: int) -> None:
+        nonlocal task
+        if total < 2:
+            return
+        if task is None:
+            bar.start()
+            task = bar.add_task(description, total=total)
+        bar.update(task, completed=done)
+
+    try:
+        yield update
+    finally:
+        bar.stop()
+
+
+def _parse_bbox(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6:
+        raise MapsqueezeError(f"--bbox: expected six comma-separated numbers x0,y0,z0,x1,y1,z1, got {text!r}")
+    return values
+
+
+@app.command("compress")
+def compress_command(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="point-cloud map (.ply .pcd .las .laz .bin .npy)"),
+    output: Path = typer.Option(..., "-o", "--output", help=".msq file to write (atomically)"),
+    model: str = typer.Option(api.DEFAULT_MODEL, "--model", help="e0|e1|e2|e3 or a model directory"),
+    precision: str = typer.Option(api.DEFAULT_PRECISION, "--precision",
+                                  help="embedding storage: f32, f16 (the paper's) or q (entropy-coded)"),
+) -> None:
+    """Compress a map: 40 x 40 x 15 m tiles, each encoded by the network (sparse tiles near-exactly)."""
+    with _tile_progress("compressing") as progress:
+        summary = api.compress_file(map_path, output, model, precision, progress=progress)
+    Console().print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles, "
+                    f"{summary.file_bytes:,} bytes, {summary.bits_per_point:.4f} bits per point")
+
+
+@app.command("decompress")
+def decompress_command(
+    msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq file to decode"),
+    output: Path = typer.Option(..., "-o", "--output", help="point cloud to write (.ply .pcd .las .laz .bin .npy)"),
+    bbox: str | None = typer.Option(None, "--bbox", metavar="x0,y0,z0,x1,y1,z1",
+                                    help="decode only the tiles meeting this box (metres) and crop to it"),
+    density: float | None = typer.Option(None, "--density", metavar="PTS_PER_M3",
+                                         help="points per m^3 of each tile's box (default: the original count)"),
+    points: int | None = typer.Option(None, "--points", metavar="N", help="total number of points to decode"),
+    model: str | None = typer.Option(None, "--model", help="model to decode with (default: the one in the file)"),
+) -> None:
+    """Decompress a .msq file to a point cloud."""
+    box = None if bbox is None else _parse_bbox(bbox)
+    with _tile_progress("decompressing") as progress:
+        count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
+                                    progress=progress)
+    Console().print(f"wrote {count:,} points to {output}")
+
+
+@app.command("info")
+def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq file")) -> None:
+    """Show a .msq file's model, tiles, sizes, bits per point and origin."""
+    summary = api.info(msq)
+    table = Table(show_header=False, box=None)
+    rows = [
+        ("model", f"{summary.model_id} (weights sha256 {summary.weights_sha256[:16]}...)"),
+        ("precision", summary.precision),
+        ("subsampling r_s", f"{summary.subsampling_dist_m:g} m"),
+        ("tile size", " x ".join(f"{v:g}" for v in summary.tile_size) + " m"),
+        ("tiles", f"{summary.n_tiles} ({summary.n_raw_tiles} coded raw)"),
+        ("points", f"{summary.n_points:,}"),
+        ("file size", f"{summary.file_bytes:,} bytes (header and tile table {summary.header_bytes:,})"),
+        ("bits per point", f"{summary.bits_per_point:.4f}"),
+        ("origin", ", ".join(f"{v:.3f}" for v in summary.origin)),
+        ("bounds", " .. ".join("(" + ", ".join(f"{v:.2f}" for v in corner) + ")" for corner in summary.bounds)),
+    ]
+    for name, value in rows:
+        table.add_row(name, value)
+    Console().print(table)

@@ -1,0 +1,11 @@
+"""The .msq codec: container format, embedding coders (f32 / f16 / entropy-coded q), whole-map compression."""
+
+from mapsqueeze.codec.compress import compress_map
+from mapsqueeze.codec.container import ContainerReader, Header, TileCoding, TileEntry, open_container
+from mapsqueeze.codec.decompress import decompress_map
+from mapsqueeze.codec.embedding import Precision
+
+__all__ = [
+    "ContainerReader", "Header", "Precision", "TileCoding", "TileEntry", "compress_map", "decompress_map",
+    "open_container",
+]

@@ -1,0 +1,146 @@
+"""Whole map -> .msq bytes: tile the map, encode each occupied tile with the network (or raw if sparse), pack."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapsqueeze.codec.container import (
+    MAX_POINTS_PER_TILE,
+    Header,
+    TileCoding,
+    TileRecord,
+    frame_origin,
+    quantise_bounds,
+    serialise_container,
+)
+from mapsqueeze.codec.embedding import (
+    DEFAULT_FEATURE_STEP_STD,
+    DEFAULT_POSITION_STEP_RS,
+    CellGrid,
+    Precision,
+    QuantModel,
+    Quantiser,
+    encode_float,
+    quantise,
+)
+from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
+from mapsqueeze.data.tiling import grid_origin, tile_map, to_local
+from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.io import validate_points
+
+RAW_POINTS_PER_EMBEDDING = 4
+"""A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
+embedding point into hundreds of points of a dense surface, fits such sparse tiles poorly."""
+
+RAW_CANDIDATE_POINTS_PER_EMBEDDING = 20
+"""Raw coding is also tried (and kept when smaller) for tiles with up to this many points per embedding point;
+beyond it raw coding (>= 13 bits a point) cannot beat even f32 embeddings (192 bits per embedding point)."""
+
+ProgressCallback = Callable[[int, int], None]
+"""Called with (tiles done, tiles in total) after each tile."""
+
+
+@dataclass
+class _EncodedTile:
+    """One tile while the map is being compressed: its table fields and candidate payloads."""
+
+    index: tuple[int, int, int]
+    n_points: int
+    bounds_lo: tuple[int, int, int]
+    bounds_hi: tuple[int, int, int]
+    points: np.ndarray | None  # network embedding (None when the tile is coded raw for sparsity)
+    features: np.ndarray | None
+    raw: bytes | None  # raw payload, when raw coding is a candidate
+    network: bytes | None = None  # network payload, once coded
+
+    def record(self) -> TileRecord:
+        """The table row and payload: the network's unless the raw payload is no larger."""
+        use_raw = self.network is None or (self.raw is not None and len(self.raw) <= len(self.network))
+        coding, payload = (TileCoding.raw, self.raw) if use_raw else (TileCoding.network, self.network)
+        return TileRecord(self.index, self.n_points, self.bounds_lo, self.bounds_hi, coding, payload)
+
+
+def compress_map(
+    points: np.ndarray,
+    model,
+    precision: Precision = Precision.q,
+    position_step_m: float | None = None,
+    feature_step_std: float = DEFAULT_FEATURE_STEP_STD,
+    progress: ProgressCallback | None = None,
+) -> bytes:
+    """Compress an (N, 3) float64 map (metres, any coordinate frame) with a loaded CompressionModel.
+
+    position_step_m / feature_step_std set the q quantiser (default DEFAULT_POSITION_STEP_RS x r_s and
+    DEFAULT_FEATURE_STEP_STD). Tiles are encoded one at a time; only their compact embeddings and payloads are
+    kept until the file is assembled (q fits its histograms over all tiles before coding them). Deterministic: the
+    same points, model and settings give the same bytes.
+    """
+    points = validate_points(points, name="map")
+    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
+    origin = grid_origin(points, tile_size)
+    tiles = tile_map(points, tile_size, origin=origin)
+    encoded = []
+    for done, tile in enumerate(tiles, start=1):
+        encoded.append(_encode_tile(tile, points, tile_size, model))
+        if progress:
+            progress(done, len(tiles))
+    n_features = int(model.config.embedding_dim)
+    quant_model = None
+    if precision is Precision.q:
+        quant_model = _code_quantised(encoded, model, position_step_m, feature_step_std, n_features)
+    else:
+        for tile in encoded:
+            if tile.points is not None:
+                tile.network = encode_float(tile.points, tile.features, precision, tile_size)
+    header = Header(
+        model_id=model.model_id,
+        weights_sha256=model.weights_sha256,
+        precision=precision,
+        subsampling_dist_m=float(model.config.subsampling_dist),
+        tile_size=tuple(float(v) for v in tile_size),
+        origin=tuple(float(v) for v in origin),
+        n_points=len(points),
+        n_tiles=len(tiles),
+        n_features=n_features,
+        raw_step_m=RAW_STEP_M,
+        quant_model=quant_model,
+    )
+    return serialise_container(header, [tile.record() for tile in encoded])
+
+
+def _encode_tile(tile, points: np.ndarray, tile_size: np.ndarray, model) -> _EncodedTile:
+    tile_points = points[tile.point_indices]
+    if len(tile_points) > MAX_POINTS_PER_TILE:
+        raise InvalidPointCloudError(
+            f"tile {tile.index} holds {len(tile_points):,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may "
+            "hold")
+    lo, hi = quantise_bounds(tile_points - tile.origin, tile_size)
+    local = to_local(tile_points, frame_origin(tile.origin, lo, tile_size), tile_size)
+    embedding = model.encode(local)
+    n_embedding = len(embedding.points)
+    raw = None
+    if len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
+        raw = encode_raw_tile(local, tile_size)
+    if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:
+        return _EncodedTile(tile.index, len(local), lo, hi, None, None, raw)
+    return _EncodedTile(tile.index, len(local), lo, hi, embedding.points, embedding.features, raw)
+
+
+def _code_quantised(encoded: list[_EncodedTile], model, position_step_m: float | None, feature_step_std: float,
+                    n_features: int) -> QuantModel:
+    """Quantise every network tile with a map-wide quantiser, fit the shared histograms, then code each tile."""
+    network_tiles = [tile for tile in encoded if tile.points is not None]
+    features = np.concatenate([t.features for t in network_tiles] or [np.zeros((0, n_features), np.float32)])
+    r_s = float(model.config.subsampling_dist)
+    if position_step_m is None:
+        position_step_m = DEFAULT_POSITION_STEP_RS * r_s
+    quantiser = Quantiser.fit(features, position_step_m, feature_step_std)
+    grid = CellGrid(r_s, tuple(float(v) for v in model.config.tile_size))
+    quantised = [quantise(tile.points, tile.features, grid, quantiser) for tile in network_tiles]
+    quant_model = QuantModel.fit(quantised, grid, quantiser)
+    for tile, q in zip(network_tiles, quantised):
+        tile.network = quant_model.encode(q)
+    return quant_model

@@ -1,0 +1,169 @@
+""".msq -> points: read the header and tile table, decode the selected tiles one at a time, place them in the world."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+
+from mapsqueeze.codec.compress import ProgressCallback
+from mapsqueeze.codec.container import (
+    MAX_POINTS_PER_TILE,
+    ContainerReader,
+    Header,
+    TileCoding,
+    TileEntry,
+    frame_origin,
+    open_container,
+)
+from mapsqueeze.codec.embedding import Precision, decode_float, dequantise
+from mapsqueeze.codec.rawtile import decode_raw_tile
+from mapsqueeze.errors import ContainerError, InvalidPointCloudError, MapsqueezeError, ModelError
+
+MIN_DENSITY_EXTENT_M = 1.0
+"""--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
+
+
+def parse_bbox(bbox: Sequence[float]) -> np.ndarray:
+    """(2, 3) float64 [[x0, y0, z0], [x1, y1, z1]] from six numbers, lower corner first."""
+    box = np.asarray(bbox, dtype=np.float64)
+    if box.shape != (6,) or not np.isfinite(box).all() or (box[:3] > box[3:]).any():
+        raise InvalidPointCloudError(f"bbox must be six finite numbers x0,y0,z0,x1,y1,z1 with x0<=x1, y0<=y1, "
+                                     f"z0<=z1, got {list(np.asarray(bbox).ravel())}")
+    return box.reshape(2, 3)
+
+
+def tile_origin(header: Header, entry: TileEntry) -> np.ndarray:
+    """float64 world lower corner of a tile (the same arithmetic as data.tiling)."""
+    return np.asarray(header.origin) + np.asarray(entry.index, dtype=np.int64) * np.asarray(header.tile_size)
+
+
+def tile_frame(header: Header, entry: TileEntry) -> np.ndarray:
+    """float64 world origin of the coordinates a tile's payload decodes to (`container.frame_origin`)."""
+    return frame_origin(tile_origin(header, entry), entry.bounds_lo, np.asarray(header.tile_size))
+
+
+def tile_world_bounds(header: Header, entry: TileEntry) -> np.ndarray:
+    """(2, 3) float64 world box of the tile's input points."""
+    return tile_origin(header, entry) + entry.bounds_m(np.asarray(header.tile_size))
+
+
+def target_counts(header: Header, entries: list[TileEntry], density: float | None, n_points: int | None) -> list[int]:
+    """Points to decode per tile: the stored counts, `density` per m^3 of each tile's box, or `n_points` in all
+    (split in proportion to the stored counts, largest remainders first)."""
+    if density is not None and n_points is not None:
+        raise InvalidPointCloudError("give either a density or a point count, not both")
+    stored = np.array([entry.n_points for entry in entries], dtype=np.int64)
+    if density is not None:
+        if not (np.isfinite(density) and density > 0):
+            raise InvalidPointCloudError(f"density must be a positive number of points per m^3, got {density}")
+        sides = [np.maximum(entry.frame_extent_m(np.asarray(header.tile_size)), MIN_DENSITY_EXTENT_M)
+                 for entry in entries]
+        counts = [int(round(density * float(np.prod(side)))) for side in sides]
+    elif n_points is not None:
+        if n_points < 1:
+            raise InvalidPointCloudError(f"point count must be at least 1, got {n_points}")
+        share = n_points * stored / max(int(stored.sum()), 1)
+        counts = np.floor(share).astype(np.int64)
+        counts[np.argsort(-(share - counts), kind="stable")[:n_points - int(counts.sum())]] += 1
+        counts = [int(c) for c in counts]
+    else:
+        counts = [int(c) for c in stored]
+    if max(counts, default=0) > MAX_POINTS_PER_TILE:
+        raise InvalidPointCloudError(f"that asks for {max(counts):,} points in one tile; at most "
+                                     f"{MAX_POINTS_PER_TILE:,} can be decoded per tile")
+    return counts
+
+
+def check_model(model, header: Header, name: str) -> None:
+    """Refuse a model whose weights differ from the ones the file was compressed with."""
+    if model.weights_sha256 != header.weights_sha256:
+        raise ModelError(
+            f"{name} was compressed with model {header.model_id!r} (weights sha256 {header.weights_sha256[:16]}...), "
+            f"but the given model {model.model_id!r} has weights {model.weights_sha256[:16]}...; "
+            "pass the model used for compression (--model NAME|PATH)")
+
+
+def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np.ndarray:
+    """Tile `position` decoded to `count` float32 points relative to `tile_frame`, clamped into the tile's bounds."""
+    from mapsqueeze.model import resample_to_count
+
+    header, entry = reader.header, reader.entries[position]
+    label = f"{reader.name}: {entry.label(position)}"
+    payload = reader.payload(position)
+    tile_size = np.asarray(header.tile_size)
+    try:
+        if entry.coding is TileCoding.raw:
+            local = resample_to_count(
+                decode_raw_tile(payload, tile_size, entry.n_points, label, header.raw_step_m), count)
+        else:
+            if header.precision is Precision.q:
+                quant_model = header.quant_model
+                points, features = dequantise(quant_model.decode(payload, entry.n_points, label), quant_model.grid,
+                                              quant_model.quantiser)
+            else:
+                points, features = decode_float(payload, header.precision, tile_size, header.n_features,
+                                                entry.n_points, label)
+            local = model.decode(points, features, count)
+    except MapsqueezeError:
+        raise
+    except (ValueError, IndexError, OverflowError) as exc:
+        raise ContainerError(f"{label}: undecodable payload ({exc})") from None
+    return np.clip(local, np.float32(0), entry.frame_extent_m(tile_size).astype(np.float32))
+
+
+def decompress_map(
+    source: bytes | str | os.PathLike,
+    model=None,
+    bbox: Sequence[float] | None = None,
+    density: float | None = None,
+    n_points: int | None = None,
+    progress: ProgressCallback | None = None,
+) -> np.ndarray:
+    """Decode a .msq buffer or file to (K, 3) float64 world points.
+
+    model: a CompressionModel, a name or path (default: the model id stored in the file); its weights must match
+    the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
+    read and decoded, and the output is cropped to it. density / n_points: see `target_counts`.
+    Memory: the output array plus one tile at a time.
+    """
+    reader, stream = open_container(source)
+    with stream:
+        header = reader.header
+        box = None if bbox is None else parse_bbox(bbox)
+        selected = [position for position, entry in enumerate(reader.entries)
+                    if box is None or _intersects(tile_world_bounds(header, entry), box)]
+        counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points)
+        if any(reader.entries[p].coding is TileCoding.network for p in selected):
+            model = _load_matching_model(model, header, reader.name)
+        output = np.empty((sum(counts), 3), dtype=np.float64)
+        filled = 0
+        for done, (position, count) in enumerate(zip(selected, counts), start=1):
+            if count:
+                world = tile_frame(header, reader.entries[position]) + decode_tile(reader, position, model, count)
+                if box is not None:
+                    world = world[((world >= box[0]) & (world <= box[1])).all(axis=1)]
+                output[filled:filled + len(world)] = world
+                filled += len(world)
+            if progress:
+                progress(done, len(selected))
+        return output[:filled]
+
+
+def _intersects(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool((a[0] <= b[1]).all() and (b[0] <= a[1]).all())
+
+
+def _load_matching_model(model, header: Header, name: str):
+    from mapsqueeze.model import load_model
+
+    if model is None:
+        try:
+            model = load_model(header.model_id)
+        except ModelError as exc:
+            raise ModelError(f"{name} needs model {header.model_id!r}: {exc}; pass it with --model PATH") from None
+    elif isinstance(model, (str, os.PathLike)):
+        model = load_model(model)
+    check_model(model, header, name)
+    return model

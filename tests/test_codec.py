@@ -1,0 +1,355 @@
+"""The .msq codec: container integrity, embedding coders, whole-map round trips, --bbox, determinism, CLI errors.
+
+A small randomly initialised model (8 x 8 x 4 m tiles, r_s = 2 m) saved to a tmp dir keeps the network fast; the
+codec does not care whether the weights are trained.
+"""
+
+import sys
+import zlib
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+import mapsqueeze
+from mapsqueeze.codec import decompress as decompress_module
+from mapsqueeze.codec.container import TileCoding, open_container
+from mapsqueeze.codec.embedding import (
+    CellGrid,
+    Precision,
+    QuantModel,
+    Quantiser,
+    decode_float,
+    dequantise,
+    encode_float,
+    quantise,
+)
+from mapsqueeze.codec.entropy import (
+    ByteReader,
+    ByteWriter,
+    Histogram,
+    SymbolReader,
+    SymbolWriter,
+    decode_gaps,
+    encode_gaps,
+)
+from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
+from mapsqueeze.errors import ContainerError, InvalidPointCloudError, ModelError
+from mapsqueeze.io import read_points, write_points
+from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
+
+UTM = np.array([500_000.123, 4_000_000.456, 50.0])
+TILE = np.array([8.0, 8.0, 4.0])
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    config = ModelConfig.for_rate("e1", tile_size=tuple(TILE), map_size=8.0, max_input_points=2000)
+    return save_model(build_model(config, seed=1), tmp_path_factory.mktemp("model") / "tiny")
+
+
+@pytest.fixture(scope="module")
+def model(model_dir):
+    return load_model(model_dir)
+
+
+def make_map(seed: int = 0, n_ground: int = 6000) -> np.ndarray:
+    """A 20 x 14 m ground with a wall and a sparse post, at UTM coordinates: 3 x 2 x 2 tiles of 8 x 8 x 4 m."""
+    rng = np.random.default_rng(seed)
+    ground = np.column_stack([rng.uniform(0, 20, n_ground), rng.uniform(0, 14, n_ground),
+                              rng.normal(0.5, 0.03, n_ground)])
+    wall = np.column_stack([rng.uniform(2, 18, 2000), rng.normal(10.0, 0.02, 2000), rng.uniform(0.5, 6.0, 2000)])
+    post = np.column_stack([rng.normal(19, 0.05, 12), rng.normal(1, 0.05, 12), rng.uniform(4.5, 7.5, 12)])
+    return np.concatenate([ground, wall, post]) + UTM
+
+
+@pytest.fixture(scope="module")
+def map_points():
+    return make_map()
+
+
+@pytest.fixture(scope="module")
+def compressed(map_points, model):
+    return mapsqueeze.compress(map_points, model=model, precision="q")
+
+
+def read_all_payloads(data: bytes) -> None:
+    """Open a container and CRC-check every payload (what decompress does before decoding each tile)."""
+    reader, stream = open_container(data)
+    with stream:
+        for position in range(len(reader.entries)):
+            reader.payload(position)
+
+
+# --- entropy coding building blocks ----------------------------------------------------------------------------
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(-300, 300), min_size=1, max_size=400), st.integers(0, 2**40))
+def test_histogram_stream_round_trips(values, big):
+    values = np.array(values)
+    histogram = Histogram.fit(values)
+    gaps = np.abs(values) * 1000 + big
+    symbols = SymbolWriter()
+    symbols.histogram(values, histogram)
+    encode_gaps(symbols, gaps, Histogram.fit(np.array([int(g).bit_length() for g in gaps])))
+    header = ByteWriter()
+    histogram.write(header)
+    read_back = Histogram.read(ByteReader(header.getvalue(), "test"))
+    reader = SymbolReader(symbols.getvalue(), "test")
+    np.testing.assert_array_equal(reader.histogram(read_back, len(values)), values)
+    np.testing.assert_array_equal(
+        decode_gaps(reader, len(gaps), Histogram.fit(np.array([int(g).bit_length() for g in gaps]))), gaps)
+    reader.finish()
+
+
+def test_histogram_codes_skewed_data_near_its_entropy():
+    rng = np.random.default_rng(0)
+    values = np.round(rng.laplace(0, 4, 20000)).astype(int)
+    histogram = Histogram.fit(values)
+    symbols = SymbolWriter()
+    symbols.histogram(values, histogram)
+    _, counts = np.unique(values, return_counts=True)
+    entropy_bits = -(counts * np.log2(counts / counts.sum())).sum()
+    assert len(symbols.getvalue()) * 8 < 1.03 * entropy_bits
+
+
+def test_varints_and_reader_bounds():
+    writer = ByteWriter()
+    for value in (0, 1, 127, 128, 2**40):
+        writer.varint(value)
+    writer.svarint(-5)
+    reader = ByteReader(writer.getvalue(), "test")
+    assert [reader.varint() for _ in range(5)] == [0, 1, 127, 128, 2**40]
+    assert reader.svarint() == -5
+    with pytest.raises(ContainerError, match="test: truncated"):
+        reader.raw(1)
+    with pytest.raises(ContainerError, match="out of range"):
+        ByteReader(b"\x80\x01", "test").varint(limit=100)
+
+
+# --- embedding coders ------------------------------------------------------------------------------------------
+
+def synthetic_embedding(rng, grid: CellGrid, m: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """Points nearest-to-centre-like inside distinct cells of the grid, 3-D features of unit scale."""
+    cells = rng.choice(grid.n_cells, m, replace=False)
+    points = grid.centres(grid.cell_coords(cells)) + rng.uniform(-0.5, 0.5, (m, 3)) * grid.cell_m * 0.9
+    return points.astype(np.float32), rng.normal(0, [1.0, 0.5, 2.0], (m, 3)).astype(np.float32)
+
+
+def test_q_coder_round_trips_bit_exactly_to_the_dequantised_embedding():
+    rng = np.random.default_rng(1)
+    grid = CellGrid(2.0, (40.0, 40.0, 15.0))
+    tiles = [synthetic_embedding(rng, grid, m) for m in (300, 50, 1)]
+    quantiser = Quantiser.fit(np.concatenate([f for _, f in tiles]), 0.02)
+    quantised = [quantise(p, f, grid, quantiser) for p, f in tiles]
+    model = QuantModel.fit(quantised, grid, quantiser)
+    header = ByteWriter()
+    model.write(header)
+    read_model = QuantModel.read(ByteReader(header.getvalue(), "header"), grid)
+    for (points, features), q in zip(tiles, quantised):
+        expected_points, expected_features = dequantise(q, grid, quantiser)
+        decoded = read_model.decode(model.encode(q), len(points), "tile")
+        got_points, got_features = dequantise(decoded, grid, read_model.quantiser)
+        assert got_points.tobytes() == expected_points.tobytes()
+        assert got_features.tobytes() == expected_features.tobytes()
+        # The lattice is close to the input: at most half a step per coordinate.
+        distance, _ = cKDTree(got_points).query(points)
+        assert distance.max() <= np.sqrt(3) * 0.02 / 2 + 1e-6
+        # Features: at most half a step per principal axis away (plus float16 rounding of the stored transform).
+        feature_error = np.linalg.norm(np.sort(got_features, axis=0) - np.sort(features, axis=0), axis=1)
+        assert np.median(feature_error) <= np.sqrt(3) * quantiser.feature_step / 2 + 1e-2
+
+
+def test_q_coder_keeps_duplicate_cells():
+    grid = CellGrid(2.0, (40.0, 40.0, 15.0))
+    points = np.array([[1.0, 1.0, 1.0], [1.5, 1.2, 0.9], [39.9, 39.9, 14.9]], dtype=np.float32)
+    features = np.zeros((3, 3), dtype=np.float32)
+    quantiser = Quantiser.fit(features, 0.02)
+    q = quantise(points, features, grid, quantiser)
+    model = QuantModel.fit([q], grid, quantiser)
+    decoded = model.decode(model.encode(q), 3, "tile")
+    np.testing.assert_array_equal(decoded.cells, q.cells)
+    np.testing.assert_array_equal(decoded.offsets, q.offsets)
+
+
+@pytest.mark.parametrize("name", ["f32", "f16"])
+def test_float_coders_round_trip(name):
+    precision = Precision[name]
+    rng = np.random.default_rng(2)
+    tile = np.array([40.0, 40.0, 15.0])
+    points, features = synthetic_embedding(rng, CellGrid(2.0, tuple(tile)), 100)
+    payload = encode_float(points, features, precision, tile)
+    assert len(payload) == 1 + 100 * 6 * (4 if precision is Precision.f32 else 2)
+    got_points, got_features = decode_float(payload, precision, tile, 3, 100, "tile")
+    if precision is Precision.f32:
+        assert got_points.tobytes() == points.tobytes() and got_features.tobytes() == features.tobytes()
+    else:
+        np.testing.assert_array_equal(got_features, features.astype(np.float16).astype(np.float32))
+        np.testing.assert_allclose(got_points, points, atol=0.02)
+
+
+def test_raw_tile_is_near_exact():
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0, 1, (500, 3)) * TILE
+    decoded = decode_raw_tile(encode_raw_tile(points, TILE), TILE, 500, "tile")
+    distance, _ = cKDTree(decoded).query(points)
+    assert len(decoded) == 500 and distance.max() <= np.sqrt(3) * RAW_STEP_M / 2 + 1e-6
+
+
+# --- whole maps ------------------------------------------------------------------------------------------------
+
+def test_round_trip_of_a_multi_tile_map(map_points, compressed, model):
+    reader, stream = open_container(compressed)
+    stream.close()
+    assert len(reader.entries) >= 6
+    assert any(e.coding is TileCoding.raw for e in reader.entries)  # the 12-point post
+    assert any(e.coding is TileCoding.network for e in reader.entries)
+    decoded = mapsqueeze.decompress(compressed, model=model)
+    assert decoded.dtype == np.float64 and np.isfinite(decoded).all()
+    assert abs(len(decoded) - len(map_points)) <= 0.1 * len(map_points)
+    # Decoded points stay inside the boxes of their tiles' input points.
+    low, high = map_points.min(axis=0), map_points.max(axis=0)
+    assert (decoded >= low - 1e-3).all() and (decoded <= high + 1e-3).all()
+    info = mapsqueeze.info(compressed)
+    assert info.n_points == len(map_points) and info.file_bytes == len(compressed)
+    assert info.bits_per_point < 2.0
+
+
+@pytest.mark.parametrize("precision", ["f32", "f16"])
+def test_float_precisions_round_trip(map_points, model, precision):
+    data = mapsqueeze.compress(map_points, model=model, precision=precision)
+    assert mapsqueeze.info(data).precision == precision
+    assert len(mapsqueeze.decompress(data, model=model)) == len(map_points)
+
+
+def test_other_densities(compressed, model, map_points):
+    assert len(mapsqueeze.decompress(compressed, model=model, n_points=1234)) == 1234
+    denser = mapsqueeze.decompress(compressed, model=model, density=50.0)
+    assert len(denser) > 0
+    with pytest.raises(InvalidPointCloudError):
+        mapsqueeze.decompress(compressed, model=model, density=5.0, n_points=10)
+    with pytest.raises(InvalidPointCloudError, match="per tile"):
+        mapsqueeze.decompress(compressed, model=model, n_points=10**12)
+
+
+def test_bbox_decodes_only_intersecting_tiles(compressed, model, monkeypatch):
+    decoded_tiles = []
+    original = decompress_module.decode_tile
+
+    def spy(reader, position, *args):
+        decoded_tiles.append(position)
+        return original(reader, position, *args)
+
+    monkeypatch.setattr(decompress_module, "decode_tile", spy)
+    box = np.concatenate([UTM + [1.0, 1.0, 0.0], UTM + [6.0, 6.0, 3.0]])  # inside the first tile column
+    points = mapsqueeze.decompress(compressed, model=model, bbox=box)
+    reader, stream = open_container(compressed)
+    stream.close()
+    boxes = [decompress_module.tile_world_bounds(reader.header, entry) for entry in reader.entries]
+    expected = [p for p, tile_box in enumerate(boxes) if decompress_module._intersects(tile_box, box.reshape(2, 3))]
+    assert decoded_tiles == expected and 0 < len(expected) < len(reader.entries)
+    assert len(points) > 0 and (points >= box[:3]).all() and (points <= box[3:]).all()
+
+
+def test_identical_bytes_on_repeated_runs(map_points, compressed, model_dir):
+    assert mapsqueeze.compress(map_points, model=load_model(model_dir), precision="q") == compressed
+
+
+def test_utm_coordinates_keep_codec_precision(model):
+    rng = np.random.default_rng(4)
+    sparse = UTM + rng.uniform(0, 1, (40, 3)) * [30.0, 20.0, 7.0]  # a few points per tile: all coded raw
+    data = mapsqueeze.compress(sparse, model=model)
+    assert mapsqueeze.info(data).n_raw_tiles == mapsqueeze.info(data).n_tiles
+    decoded = mapsqueeze.decompress(data)  # raw tiles need no model
+    distance, _ = cKDTree(decoded).query(sparse)
+    assert len(decoded) == len(sparse) and distance.max() <= np.sqrt(3) * RAW_STEP_M / 2 + 1e-6
+
+
+def test_empty_map_is_refused_and_one_point_map_gives_a_tiny_file(model):
+    with pytest.raises(InvalidPointCloudError, match="empty"):
+        mapsqueeze.compress(np.zeros((0, 3)), model=model)
+    data = mapsqueeze.compress(UTM[None, :], model=model)
+    assert len(data) < 300
+    np.testing.assert_allclose(mapsqueeze.decompress(data), UTM[None, :], atol=RAW_STEP_M)
+
+
+def test_wrong_model_is_refused(compressed, tmp_path):
+    other = save_model(build_model(ModelConfig.for_rate("e1", tile_size=tuple(TILE), map_size=8.0), seed=2),
+                       tmp_path / "other")
+    with pytest.raises(ModelError, match="compressed with model"):
+        mapsqueeze.decompress(compressed, model=other)
+
+
+# --- corruption ----------------------------------------------------------------------------------------------
+
+def test_every_truncation_is_detected(compressed):
+    for length in range(len(compressed)):
+        with pytest.raises(ContainerError):
+            read_all_payloads(compressed[:length])
+
+
+def test_every_single_byte_corruption_is_detected(compressed):
+    for position in range(len(compressed)):
+        corrupt = bytearray(compressed)
+        corrupt[position] ^= 0x5A
+        with pytest.raises(ContainerError):
+            read_all_payloads(bytes(corrupt))
+
+
+def test_corrupt_tile_is_named_by_decompress(compressed, model):
+    reader, stream = open_container(compressed)
+    stream.close()
+    last = reader.entries[-1]
+    corrupt = bytearray(compressed)
+    corrupt[last.offset + last.length // 2] ^= 0xFF
+    index = ",".join(str(v) for v in last.index)
+    with pytest.raises(ContainerError, match=rf"tile {len(reader.entries) - 1} \(index {index}\): payload CRC"):
+        mapsqueeze.decompress(bytes(corrupt), model=model)
+    with pytest.raises(ContainerError, match="not a .msq"):
+        mapsqueeze.decompress(b"PK\x03\x04" + bytes(compressed[4:]), model=model)
+
+
+def test_payload_checks_catch_forged_crcs(compressed):
+    """A payload rewritten with a matching CRC but garbage content still gives ContainerError, not garbage."""
+    reader, stream = open_container(compressed)
+    stream.close()
+    position = next(p for p, e in enumerate(reader.entries) if e.coding is TileCoding.network)
+    entry = reader.entries[position]
+    with pytest.raises(ContainerError, match=f"tile {position}"):
+        reader.header.quant_model.decode(b"\x07" + b"\xff" * (entry.length - 1), entry.n_points, f"tile {position}")
+    assert zlib.crc32(compressed[entry.offset:entry.offset + entry.length]) == entry.crc32
+
+
+# --- command line ----------------------------------------------------------------------------------------------
+
+def run_cli(monkeypatch, capsys, *args):
+    from mapsqueeze.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["mapsqueeze", *map(str, args)])
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    return exit_info.value.code, capsys.readouterr()
+
+
+def test_cli_round_trip_and_errors(tmp_path, map_points, model_dir, monkeypatch, capsys):
+    source, msq, out = tmp_path / "map.ply", tmp_path / "map.msq", tmp_path / "out.npy"
+    write_points(source, map_points)
+    code, _ = run_cli(monkeypatch, capsys, "compress", source, "-o", msq, "--model", model_dir)
+    assert code in (0, None) and msq.is_file()
+    code, captured = run_cli(monkeypatch, capsys, "info", msq)
+    assert code in (0, None) and "bits per point" in captured.out
+    box = ",".join(str(v) for v in np.concatenate([UTM, UTM + [7.0, 7.0, 3.0]]))
+    code, _ = run_cli(monkeypatch, capsys, "decompress", msq, "-o", out, "--model", model_dir, f"--bbox={box}")
+    assert code in (0, None) and len(read_points(out)) > 0
+    truncated = tmp_path / "truncated.msq"
+    truncated.write_bytes(msq.read_bytes()[:-10])
+    for args in (["decompress", truncated, "-o", out, "--model", model_dir],
+                 ["decompress", msq, "-o", out, "--bbox", "1,2,3"],
+                 ["compress", source, "-o", msq, "--precision", "f8", "--model", model_dir],
+                 ["compress", tmp_path / "missing.ply", "-o", msq],
+                 ["info", source]):
+        code, captured = run_cli(monkeypatch, capsys, *args)
+        lines = captured.err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), (args, captured.err)
