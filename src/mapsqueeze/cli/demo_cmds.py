@@ -23,13 +23,21 @@ def demo_cmd(
 
     results = run_demo(model, out, progress=lambda m: console.print(f"[dim]{m}"))
     table = Table(title=f"mapsqueeze demo, model {model}")
-    for col in ("map", "points", "compressed", "bpp", "decoded pts", "D_e (m)", "D_perp (m)", "IoU",
-                "compress (s)", "decompress (s)"):
-        table.add_column(col, justify="right")
+    table.add_column("")
     for r in results:
-        m = r.metrics
-        table.add_row(r.name, f"{r.n_points:,}", f"{r.n_bytes:,} B", f"{m.bpp:.4f}", f"{r.n_decoded:,}",
-                      f"{m.d_e:.4f}", f"{m.d_perp:.4f}", f"{m.iou:.3f}", f"{r.compress_s:.2f}",
-                      f"{r.decompress_s:.2f}")
+        table.add_column(r.name, justify="right")
+    rows = {
+        "input points": lambda r: f"{r.n_points:,}",
+        "compressed size": lambda r: f"{r.n_bytes:,} B",
+        "bits per point": lambda r: f"{r.metrics.bpp:.4f}",
+        "decoded points": lambda r: f"{r.n_decoded:,}",
+        "D_e (m)": lambda r: f"{r.metrics.d_e:.4f}",
+        "D_perp (m)": lambda r: f"{r.metrics.d_perp:.4f}",
+        "IoU": lambda r: f"{r.metrics.iou:.3f}",
+        "compress (s)": lambda r: f"{r.compress_s:.2f}",
+        "decompress (s)": lambda r: f"{r.decompress_s:.2f}",
+    }
+    for label, cell in rows.items():
+        table.add_row(label, *(cell(r) for r in results))
     console.print(table)
     console.print(f"files in {out}/ (.msq containers, decoded PLYs)")

@@ -47,6 +47,8 @@ def simulate(
     beam pattern while driving; each submap aggregates a random number of scans with the real pipeline (2-20 m
     range, 10 cm voxels, 40 x 40 x 15 m boxes every 15 m).
     """
+    if out_dir.exists() and not out_dir.is_dir():
+        raise SimulationError(f"{out_dir}: exists and is not a directory")
     config = SimulationConfig(n_submaps=submaps, sensors=_names(sensor, "--sensor"),
                               presets=_names(preset, "--preset"), seed=seed, submaps_per_scene=per_scene,
                               scans_per_submap=_scan_range(scans))

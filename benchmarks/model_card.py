@@ -1,0 +1,52 @@
+"""Write MODEL_CARD.md for a shipped model: training provenance from its config plus bpp / D_e / D_perp / IoU of
+the full codec (q precision) on each real submap in ../shared/data/real/submaps.
+
+    .venv/bin/python benchmarks/model_card.py e1 [--log runs/e1/log.csv]
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+from mapsqueeze.api import compress, decompress
+from mapsqueeze.io import atomic_write_bytes, read_points
+from mapsqueeze.metrics import evaluate
+from mapsqueeze.model import load_model
+from mapsqueeze.model.checkpoint import SHIPPED_DIR
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "submaps"
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("name")
+    ap.add_argument("--log", type=Path, help="training log.csv to summarise")
+    args = ap.parse_args()
+    model = load_model(args.name)
+    c = model.config
+    lines = [f"# Model card: {c.name}", "",
+             f"- Rate point {c.name}: subsampling distance r_s = {c.subsampling_dist:g} m, decoder upsampling "
+             f"{' x '.join(map(str, c.upsampling_factors))} = {c.native_upsampling} points per embedding point.",
+             f"- Architecture: the paper's (docs/model.md); weights SHA-256 `{model.weights_sha256}`.",
+             f"- Training: {json.dumps(c.extra)}",
+             "- Training data: simulated maps only (mapsqueeze simulate, docs/simulator.md); the real submaps below "
+             "were never used for training or model selection.", ""]
+    if args.log and args.log.is_file():
+        rows = args.log.read_text().strip().splitlines()
+        lines += ["Training log (last epochs):", "", "```", rows[0], *rows[-5:], "```", ""]
+    lines += ["## Real submaps (full codec, precision q)", "",
+              "| submap | points | bytes | bpp | D_e (m) | D_perp (m) | IoU |", "|---|---|---|---|---|---|---|"]
+    for path in sorted(REAL.glob("*.ply")):
+        gt = read_points(path)
+        data = compress(gt, model=model)
+        m = evaluate(gt, decompress(data, model=model), n_bytes=len(data))
+        lines.append(f"| {path.stem} | {len(gt):,} | {len(data):,} | {m.bpp:.4f} | {m.d_e:.4f} | {m.d_perp:.4f} | "
+                     f"{m.iou:.3f} |")
+    lines += ["", f"Command: `.venv/bin/python benchmarks/model_card.py {args.name}"
+              + (f" --log {args.log}`" if args.log else "`")]
+    atomic_write_bytes(SHIPPED_DIR / args.name / "MODEL_CARD.md", ("\n".join(lines) + "\n").encode())
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
