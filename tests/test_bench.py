@@ -1,0 +1,43 @@
+"""The rate-distortion benchmark and the shipped models."""
+
+import csv
+
+import numpy as np
+from typer.testing import CliRunner
+
+from mapsqueeze.bench import run_benchmark
+from mapsqueeze.cli import app
+from mapsqueeze.io import write_points
+from mapsqueeze.model import ModelConfig, build_model, load_model, save_model, shipped_models
+
+
+def test_benchmark_writes_csv_table_and_plot(tmp_path):
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.random((6000, 2)) * 30, rng.normal(0, 0.02, 6000)]
+    wall = np.c_[rng.random(3000) * 30, np.full(3000, 5.0), rng.random(3000) * 5]
+    write_points(tmp_path / "street.ply", np.vstack([ground, wall]) + [1000.0, 2000.0, 50.0])
+    save_model(build_model(ModelConfig.for_rate("e0")), tmp_path / "e0")
+    rows = run_benchmark([tmp_path / "street.ply"], ["octree", "mapsqueeze"], tmp_path / "out",
+                         models=[str(tmp_path / "e0")], log=lambda m: None)
+    codecs = {r.codec for r in rows}
+    assert codecs == {"octree", "mapsqueeze"}
+    octree = sorted((r for r in rows if r.codec == "octree"), key=lambda r: r.bpp)
+    # coarser octrees cost fewer bits and lose more accuracy
+    assert octree[0].d_e > octree[-1].d_e and octree[-1].d_e < 0.1
+    with open(tmp_path / "out" / "results.csv") as f:
+        assert len(list(csv.DictReader(f))) == len(rows)
+    assert "| mapsqueeze |" in (tmp_path / "out" / "results.md").read_text()
+    assert (tmp_path / "out" / "rd.png").stat().st_size > 10_000
+
+
+def test_bench_cli_rejects_missing_input(tmp_path):
+    result = CliRunner().invoke(app, ["bench", str(tmp_path / "nope"), "-o", str(tmp_path / "o")])
+    assert result.exit_code != 0
+
+
+def test_shipped_default_model_loads_and_is_listed():
+    assert "e1" in shipped_models()
+    model = load_model("e1")
+    assert model.config.subsampling_dist == 2.0 and len(model.weights_sha256) == 64
+    result = CliRunner().invoke(app, ["models"])
+    assert result.exit_code == 0 and "e1" in result.output
