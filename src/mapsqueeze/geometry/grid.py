@@ -6,7 +6,6 @@ coordinates are normalised (metres / map size), voxel keys and tie-breaking dist
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import numpy as np
@@ -39,23 +38,23 @@ def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return order[first].numpy().astype(np.int64)
 
 
-def radius_neighbors(
-    source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int, workers: int = -1
-) -> np.ndarray:
+def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int) -> np.ndarray:
     """Padded neighbour indices of each query within `radius`, capped at `max_neighbors`.
 
     When a query has more than `max_neighbors` neighbours, an evenly spread subset is kept: with the neighbours in
     index order n_0 < ... < n_{m-1}, column j holds n_{floor(m * j / max_neighbors)} (the reference's rule).
     Missing entries hold len(source) (a "shadow" index). Returns (Q, K) int64, K = the largest count (<= cap).
     """
-    tree = cKDTree(source)
-    neighbor_lists = tree.query_ball_point(queries, r=radius, workers=workers, return_sorted=True)
-    counts = np.fromiter((len(n) for n in neighbor_lists), dtype=np.int64, count=len(neighbor_lists))
+    n_source = len(source)
+    pairs = cKDTree(queries).sparse_distance_matrix(cKDTree(source), radius, output_type="ndarray")
+    # one int64 key per pair sorts the neighbours by (query, source index) without Python lists
+    keys = np.sort(pairs["i"].astype(np.int64) * n_source + pairs["j"])
+    flat = keys % n_source
+    counts = np.bincount(keys // n_source, minlength=len(queries))
     width = int(min(max_neighbors, counts.max(initial=0)))
     result = np.full((len(queries), width), len(source), dtype=np.int64)
     if width == 0:
         return result
-    flat = np.fromiter(itertools.chain.from_iterable(neighbor_lists), dtype=np.int64, count=int(counts.sum()))
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     kept = np.minimum(counts, max_neighbors)
     rows = np.repeat(np.arange(len(queries)), kept)
