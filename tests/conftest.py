@@ -22,3 +22,20 @@ def real_submaps():
     if not REAL_SUBMAPS.is_dir():
         pytest.skip("real submaps not available (../shared/data/real/submaps)")
     return REAL_SUBMAPS
+
+
+@pytest.fixture
+def run_cli(monkeypatch, capsys):
+    """Run the `mapsqueeze` entry point in-process: run_cli(*args) -> (exit code, stdout, stderr)."""
+    import sys
+
+    from mapsqueeze.cli import main
+
+    def run(*args: str) -> tuple[int, str, str]:
+        monkeypatch.setattr(sys, "argv", ["mapsqueeze", *args])
+        with pytest.raises(SystemExit) as exit_info:
+            main()
+        captured = capsys.readouterr()
+        return exit_info.value.code, captured.out, captured.err
+
+    return run

@@ -1,14 +1,12 @@
 """Map building: voxel filter, sequence layouts (KITTI, scan folders), submaps, datasets, grid tiling, CLI."""
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapsqueeze.cli import main
 from mapsqueeze.data import (
     DataError,
     aggregate_map,
@@ -44,14 +42,6 @@ def rigid(rotation: np.ndarray, translation) -> np.ndarray:
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = rotation, translation
     return pose
-
-
-def run_cli(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["mapsqueeze", *args])
-    with pytest.raises(SystemExit) as exit_info:
-        main()
-    captured = capsys.readouterr()
-    return exit_info.value.code, captured.out, captured.err
 
 
 # --- voxel filter ---------------------------------------------------------------------------------------------
@@ -351,30 +341,30 @@ def test_tiles_skip_empty_cells_and_follow_a_given_origin():
 # --- CLI ------------------------------------------------------------------------------------------------------
 
 
-def test_build_map_cli_missing_folder_is_one_error_line(monkeypatch, capsys, tmp_path):
-    code, _, err = run_cli(monkeypatch, capsys, "build-map", str(tmp_path / "absent"), "-o", str(tmp_path / "out"))
+def test_build_map_cli_missing_folder_is_one_error_line(run_cli, tmp_path):
+    code, _, err = run_cli("build-map", str(tmp_path / "absent"), "-o", str(tmp_path / "out"))
     assert code == 2
     assert len(err.strip().splitlines()) == 1 and err.startswith("error:") and "no such folder" in err
 
 
-def test_build_map_cli_without_poses_is_an_error(monkeypatch, capsys, tmp_path):
+def test_build_map_cli_without_poses_is_an_error(run_cli, tmp_path):
     write_points(tmp_path / "scan.ply", np.ones((5, 3)))
-    code, _, err = run_cli(monkeypatch, capsys, "build-map", str(tmp_path), "-o", str(tmp_path / "out"))
+    code, _, err = run_cli("build-map", str(tmp_path), "-o", str(tmp_path / "out"))
     assert code == 2 and err.startswith("error:") and "--estimate-poses" in err
 
 
-def test_build_map_and_tile_cli(monkeypatch, capsys, kitti_root, tmp_path):
+def test_build_map_and_tile_cli(run_cli, kitti_root, tmp_path):
     root, *_ = kitti_root
-    code, _, err = run_cli(monkeypatch, capsys, "build-map", str(root), "-o", str(tmp_path / "ds"), "--voxel", "0.05")
+    code, _, err = run_cli("build-map", str(root), "-o", str(tmp_path / "ds"), "--voxel", "0.05")
     assert code == 0, err
     (record,) = read_dataset(tmp_path / "ds").records
     assert (record.source, record.n_points, record.split) == ("kitti-00", 4, "train")
     write_points(tmp_path / "map.ply", UTM_OFFSET_M + np.random.default_rng(6).uniform(0, 50, (2000, 3)))
-    code, _, err = run_cli(monkeypatch, capsys, "tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "tiles"),
+    code, _, err = run_cli("tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "tiles"),
                            "--tile", "25,25,50")
     assert code == 0, err
     records = read_dataset(tmp_path / "tiles").records
     assert sum(record.n_points for record in records) == 2000 and all(record.pose is None for record in records)
-    code, _, err = run_cli(monkeypatch, capsys, "tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "t"),
+    code, _, err = run_cli("tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "t"),
                            "--tile", "25,25")
     assert code == 2 and err.startswith("error: --tile")

@@ -1,7 +1,6 @@
 """Metrics of the paper (D_e, D_perp, IoU, Chamfer, bpp) and PCA normals, on hand-computed cases."""
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -151,16 +150,6 @@ def write_ply(path: Path, points: np.ndarray) -> None:
     PlyData([PlyElement.describe(vertices, "vertex")]).write(str(path))
 
 
-def run_cli(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    from mapsqueeze.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["mapsqueeze", *args])
-    with pytest.raises(SystemExit) as exit_info:
-        main()
-    captured = capsys.readouterr()
-    return exit_info.value.code, captured.out, captured.err
-
-
 @pytest.fixture
 def cloud_files(tmp_path):
     gt, rotation = tilted_grid_plane()
@@ -170,25 +159,25 @@ def cloud_files(tmp_path):
     return gt_path, rec_path
 
 
-def test_cli_eval_prints_table(monkeypatch, capsys, cloud_files):
-    code, out, _ = run_cli(monkeypatch, capsys, "eval", *map(str, cloud_files), "--bytes", "225")
+def test_cli_eval_prints_table(run_cli, cloud_files):
+    code, out, _ = run_cli("eval", *map(str, cloud_files), "--bytes", "225")
     assert code == 0
     assert "D_e" in out and "0.050000" in out and "2.0000" in out  # bpp = 8 * 225 / 900
 
 
-def test_cli_eval_json(monkeypatch, capsys, cloud_files, tmp_path):
+def test_cli_eval_json(run_cli, cloud_files, tmp_path):
     compressed = tmp_path / "map.msq"
     compressed.write_bytes(b"x" * 450)
     args = ["eval", *map(str, cloud_files), "--compressed", str(compressed), "--json"]
-    code, out, _ = run_cli(monkeypatch, capsys, *args)
+    code, out, _ = run_cli(*args)
     assert code == 0
     result = json.loads(out)
     assert result["d_e"] == pytest.approx(0.05, abs=1e-6) and result["bpp"] == pytest.approx(4.0)
     assert (result["n_gt"], result["n_rec"]) == (SIDE * SIDE, SIDE * SIDE)
 
 
-def test_cli_eval_missing_file_is_one_error_line(monkeypatch, capsys, cloud_files, tmp_path):
-    code, out, err = run_cli(monkeypatch, capsys, "eval", str(cloud_files[0]), str(tmp_path / "missing.ply"))
+def test_cli_eval_missing_file_is_one_error_line(run_cli, cloud_files, tmp_path):
+    code, out, err = run_cli("eval", str(cloud_files[0]), str(tmp_path / "missing.ply"))
     assert code == 2 and out == ""
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and "missing.ply" in lines[0]

@@ -2,6 +2,8 @@
 
 import typer
 
+from mapsqueeze.errors import MapsqueezeError
+
 app = typer.Typer(
     name="mapsqueeze",
     help="Compress dense 3-D point-cloud maps with a learned autoencoder.",
@@ -9,3 +11,14 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+
+def parse_numbers(text: str, count: int, option: str, meaning: str) -> list[float]:
+    """'40,40,15' -> [40.0, 40.0, 15.0]; exactly `count` comma-separated numbers or a MapsqueezeError."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != count:
+        raise MapsqueezeError(f"{option}: expected {meaning}, got {text!r}")
+    return values

@@ -10,8 +10,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from mapsqueeze import api
-from mapsqueeze.cli.app import app
-from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.cli.app import app, parse_numbers
 
 
 @contextmanager
@@ -34,16 +33,6 @@ def _tile_progress(description: str) -> Iterator:
         yield update
     finally:
         bar.stop()
-
-
-def _parse_bbox(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 6:
-        raise MapsqueezeError(f"--bbox: expected six comma-separated numbers x0,y0,z0,x1,y1,z1, got {text!r}")
-    return values
 
 
 @app.command("compress")
@@ -73,7 +62,7 @@ def decompress_command(
     model: str | None = typer.Option(None, "--model", help="model to decode with (default: the one in the file)"),
 ) -> None:
     """Decompress a .msq file to a point cloud."""
-    box = None if bbox is None else _parse_bbox(bbox)
+    box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress)

@@ -6,7 +6,7 @@ import typer
 from rich.console import Console
 from rich.progress import Progress
 
-from mapsqueeze.cli.app import app
+from mapsqueeze.cli.app import app, parse_numbers
 from mapsqueeze.data.mapping import (
     MAX_RANGE_M,
     MIN_RANGE_M,
@@ -31,12 +31,7 @@ _SPLIT_HELP = f"Put every submap in this split ({', '.join(SPLITS)}); default: K
 
 def _lengths(text: str, option: str) -> tuple[float, float, float]:
     """'40,40,15' -> (40.0, 40.0, 15.0) metres."""
-    try:
-        lengths = [float(part) for part in text.split(",")]
-    except ValueError:
-        lengths = []
-    if len(lengths) != 3:
-        raise MapsqueezeError(f"{option}: expected three comma-separated lengths in metres (x,y,z), got {text!r}")
+    lengths = parse_numbers(text, 3, option, "three comma-separated lengths in metres (x,y,z)")
     return tuple(as_lengths(lengths, option))
 
 
