@@ -109,10 +109,14 @@ def validate(network: Autoencoder, samples: list[Sample], device: torch.device) 
 
 
 def init_from(network: Autoencoder, source_dir: Path) -> int:
-    """Copy every parameter whose name and shape match from another model (e.g. another rate point)."""
+    """Copy every learned tensor whose name and shape match from another model (e.g. another rate point).
+
+    Kernel point positions are geometry derived from this model's own configuration and are never copied.
+    """
     other, _ = load_network(source_dir)
     own = network.state_dict()
-    matched = {k: v for k, v in other.state_dict().items() if k in own and own[k].shape == v.shape}
+    matched = {k: v for k, v in other.state_dict().items()
+               if k in own and own[k].shape == v.shape and not k.endswith("kernel_points")}
     own.update(matched)
     network.load_state_dict(own)
     return len(matched)

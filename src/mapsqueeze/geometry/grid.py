@@ -7,6 +7,7 @@ coordinates are normalised (metres / map size), voxel keys and tie-breaking dist
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -44,11 +45,26 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     When a query has more than `max_neighbors` neighbours, an evenly spread subset is kept: with the neighbours in
     index order n_0 < ... < n_{m-1}, column j holds n_{floor(m * j / max_neighbors)} (the reference's rule).
     Missing entries hold len(source) (a "shadow" index). Returns (Q, K) int64, K = the largest count (<= cap).
+    The search runs on torch.get_num_threads() threads over contiguous query ranges; the result does not depend
+    on the thread count.
     """
     n_source = len(source)
-    pairs = cKDTree(queries).sparse_distance_matrix(cKDTree(source), radius, output_type="ndarray")
-    # one int64 key per pair sorts the neighbours by (query, source index) without Python lists
-    keys = np.sort(pairs["i"].astype(np.int64) * n_source + pairs["j"])
+    source_tree = cKDTree(source)
+
+    def sorted_pair_keys(query_range: np.ndarray) -> np.ndarray:
+        """(query, source index) pairs within radius as one int64 key each, sorted (numpy and scipy release the
+        GIL here, so ranges run in parallel)."""
+        if len(query_range) == 0:
+            return np.zeros(0, dtype=np.int64)
+        pairs = cKDTree(queries[query_range]).sparse_distance_matrix(source_tree, radius, output_type="ndarray")
+        return np.sort((pairs["i"].astype(np.int64) + query_range[0]) * n_source + pairs["j"])
+
+    ranges = np.array_split(np.arange(len(queries)), max(1, min(torch.get_num_threads(), len(queries) // 256)))
+    if len(ranges) == 1:
+        keys = sorted_pair_keys(ranges[0])
+    else:
+        with ThreadPoolExecutor(len(ranges)) as pool:
+            keys = np.concatenate(list(pool.map(sorted_pair_keys, ranges)))
     flat = keys % n_source
     counts = np.bincount(keys // n_source, minlength=len(queries))
     width = int(min(max_neighbors, counts.max(initial=0)))
