@@ -1,11 +1,10 @@
 """Write MODEL_CARD.md for a shipped model: training provenance from its config plus bpp / D_e / D_perp / IoU of
 the full codec (q precision) on each real submap in ../shared/data/real/submaps.
 
-    .venv/bin/python benchmarks/model_card.py e1 [--log runs/e1/log.csv]
+    .venv/bin/python benchmarks/model_card.py e1 [--log runs/e1/log.csv] [--provenance runs/e1/PROVENANCE.md]
 """
 
 import argparse
-import json
 from pathlib import Path
 
 from mapsqueeze.api import compress, decompress
@@ -21,6 +20,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("name")
     ap.add_argument("--log", type=Path, help="training log.csv to summarise")
+    ap.add_argument("--provenance", type=Path, help="markdown file with the training commands, appended verbatim")
     args = ap.parse_args()
     model = load_model(args.name)
     c = model.config
@@ -28,12 +28,13 @@ def main():
              f"- Rate point {c.name}: subsampling distance r_s = {c.subsampling_dist:g} m, decoder upsampling "
              f"{' x '.join(map(str, c.upsampling_factors))} = {c.native_upsampling} points per embedding point.",
              f"- Architecture: the paper's (docs/model.md); weights SHA-256 `{model.weights_sha256}`.",
-             f"- Training: {json.dumps(c.extra)}",
+             "- Training: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                        for k, v in c.extra.items()),
              "- Training data: simulated maps only (mapsqueeze simulate, docs/simulator.md); the real submaps below "
              "were never used for training or model selection.", ""]
     if args.log and args.log.is_file():
         rows = args.log.read_text().strip().splitlines()
-        lines += ["Training log (last epochs):", "", "```", rows[0], *rows[-5:], "```", ""]
+        lines += ["Training log (last epochs):", "", "```", rows[0], *rows[1:][-5:], "```", ""]
     lines += ["## Real submaps (full codec, precision q)", "",
               "| submap | points | bytes | bpp | D_e (m) | D_perp (m) | IoU |", "|---|---|---|---|---|---|---|"]
     for path in sorted(REAL.glob("*.ply")):
@@ -43,7 +44,10 @@ def main():
         lines.append(f"| {path.stem} | {len(gt):,} | {len(data):,} | {m.bpp:.4f} | {m.d_e:.4f} | {m.d_perp:.4f} | "
                      f"{m.iou:.3f} |")
     lines += ["", f"Command: `.venv/bin/python benchmarks/model_card.py {args.name}"
-              + (f" --log {args.log}`" if args.log else "`")]
+              + (f" --log {args.log}" if args.log else "")
+              + (f" --provenance {args.provenance}" if args.provenance else "") + "`"]
+    if args.provenance:
+        lines += ["", "## Provenance", "", args.provenance.read_text().strip()]
     atomic_write_bytes(SHIPPED_DIR / args.name / "MODEL_CARD.md", ("\n".join(lines) + "\n").encode())
     print("\n".join(lines))
 

@@ -278,6 +278,9 @@ def test_dataset_round_trip_keeps_precision_and_merges_sources(tmp_path):
         ("kitti-08", 0), ("kitti-08", 1), ("utm", 0)
     ]
     assert len(dataset.split("test")) == 2
+    assert dataset.split("all") == dataset.records
+    with pytest.raises(DataError, match="unknown split"):
+        dataset.split("tset")
     assert sorted(path.name for path in tmp_path.glob("utm-*.ply")) == ["utm-00000.ply"]  # stale files removed
     record = dataset.split("train")[0]
     local = record.local_points()

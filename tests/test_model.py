@@ -178,3 +178,19 @@ def test_import_depoco_cli(reference_dir, tmp_path):
     assert result.exit_code == 0, result.output
     model = load_model(tmp_path / "e0")
     assert model.config.subsampling_dist == 3.0 and model.config.upsampling_factors == (6, 6, 6, 6)
+
+
+def test_init_from_another_rate_copies_learned_weights_but_not_kernel_geometry(tmp_path):
+    from mapsqueeze.train import init_from
+
+    source = build_model(ModelConfig.for_rate("e1"), seed=1)
+    save_model(source, tmp_path / "e1")
+    target = build_model(ModelConfig.for_rate("e0"), seed=2)
+    kernel_points = target.encoder.blocks[2].kp_conv.kernel_points.clone()  # radius 3 m (e1: 2 m)
+    init_from(target, tmp_path / "e1")
+    assert torch.equal(target.encoder.blocks[2].kp_conv.weights, source.encoder.blocks[2].kp_conv.weights)
+    assert torch.equal(target.decoder.blocks[0].feature_mlp[0].weight, source.decoder.blocks[0].feature_mlp[0].weight)
+    assert torch.equal(target.encoder.blocks[2].kp_conv.kernel_points, kernel_points)
+    assert not torch.equal(kernel_points, source.encoder.blocks[2].kp_conv.kernel_points)
+    # e0 spawns 6 children per point, e1 5: the K-wide output layers keep their own initialisation
+    assert target.decoder.blocks[0].offset_mlp[2].weight.shape[0] == 18

@@ -22,7 +22,7 @@ def bench_cmd(
     models: Optional[str] = typer.Option(None, help="mapsqueeze models (names or folders, comma-separated); "
                                                     "default: every shipped model"),
     precision: str = typer.Option("q", help="Embedding precision of mapsqueeze: q, f16 or f32"),
-    split: str = typer.Option("test", help="Split of dataset folders to run on"),
+    split: str = typer.Option("test", help="Split of dataset folders to run on: train, val, test or all (a held-out dataset)"),
 ):
     """Run every codec and setting on every cloud: bytes, bpp, D_e, D_perp, IoU, encode/decode seconds."""
     from mapsqueeze.bench import run_benchmark

@@ -310,9 +310,11 @@ class SubmapDataset:
     records: list[SubmapRecord]
 
     def split(self, name: str) -> list[SubmapRecord]:
-        """The records of one split (train, val or test)."""
+        """The records of one split (train, val or test), or every record for "all" (e.g. a held-out dataset)."""
+        if name == "all":
+            return list(self.records)
         if name not in SPLITS:
-            raise DataError(f"unknown split {name!r} (one of {', '.join(SPLITS)})")
+            raise DataError(f"unknown split {name!r} (one of {', '.join(SPLITS)}, all)")
         return [record for record in self.records if record.split == name]
 
 
