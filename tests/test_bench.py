@@ -26,7 +26,10 @@ def test_benchmark_writes_csv_table_and_plot(tmp_path):
     assert octree[0].d_e > octree[-1].d_e and octree[-1].d_e < 0.1
     with open(tmp_path / "out" / "results.csv") as f:
         assert len(list(csv.DictReader(f))) == len(rows)
-    assert "| mapsqueeze |" in (tmp_path / "out" / "results.md").read_text()
+    table = (tmp_path / "out" / "results.md").read_text()
+    assert "| mapsqueeze |" in table
+    per_cloud = [line for line in table.splitlines() if line.startswith("| street | mapsqueeze | e0,q |")]
+    assert len(per_cloud) == 1 and per_cloud[0].endswith(("| yes |", "| no |", "| outside front |"))
     assert (tmp_path / "out" / "rd.png").stat().st_size > 10_000
 
 

@@ -199,9 +199,32 @@ def write_results(rows: list[Row], out_dir: Path) -> None:
         ref = "" if s["codec"] in CLASSICAL else f"{classical_d_e_at(summary, s['bpp']):.4f}"
         lines.append(f"| {s['codec']} | {s['setting']} | {s['clouds']} | {s['bpp']:.4f} | {s['d_e']:.4f} | "
                      f"{s['d_perp']:.4f} | {s['iou']:.3f} | {s['encode_s']:.2f} | {s['decode_s']:.2f} | {ref} |")
+    lines += ["", "Per cloud: each learned setting against the classical Pareto front of the same cloud.", "",
+              "| cloud | codec | setting | bpp | D_e (m) | best classical D_e at this bpp (m) | better |",
+              "|---" * 7 + "|"]
+    for r, reference in per_cloud_comparison(rows):
+        lines.append(f"| {r.cloud} | {r.codec} | {r.setting} | {r.bpp:.4f} | {r.d_e:.4f} | {reference:.4f} | "
+                     f"{'outside front' if np.isnan(reference) else 'yes' if r.d_e < reference else 'no'} |")
     with atomic_output(out_dir / "results.md") as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
     plot_rd(summary, out_dir)
+
+
+def per_cloud_comparison(rows: list[Row]) -> list[tuple[Row, float]]:
+    """(learned row, D_e of the best classical codec on the same cloud at the same bpp) for every learned row.
+
+    The classical front is interpolated in log bpp (NaN when the cloud has no classical result)."""
+    from mapsqueeze.baselines.rd import distortion_at
+
+    out = []
+    for r in rows:
+        if r.codec in CLASSICAL:
+            continue
+        classical = [c for c in rows if c.cloud == r.cloud and c.codec in CLASSICAL]
+        reference = (float(distortion_at([c.bpp for c in classical], [c.d_e for c in classical], r.bpp))
+                     if classical else float("nan"))
+        out.append((r, reference))
+    return out
 
 
 def plot_rd(summary: list[dict], out_dir: Path) -> None:
