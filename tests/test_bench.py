@@ -44,3 +44,10 @@ def test_shipped_default_model_loads_and_is_listed():
     assert model.config.subsampling_dist == 2.0 and len(model.weights_sha256) == 64
     result = CliRunner().invoke(app, ["models"])
     assert result.exit_code == 0 and "e1" in result.output
+
+
+def test_model_labels_are_unique_path_suffixes():
+    from mapsqueeze.bench import unique_labels
+
+    assert unique_labels(["e1", "runs/x/e0"]) == ["e1", "e0"]
+    assert unique_labels(["runs/a/best", "runs/b/best"]) == ["a/best", "b/best"]

@@ -94,6 +94,15 @@ def state_sha256(network) -> str:
     return digest.hexdigest()
 
 
+def unique_labels(names: list[str]) -> list[str]:
+    """Shortest path suffixes that tell the models apart: runs/a/best, runs/b/best -> a/best, b/best."""
+    parts = [Path(n).parts or (n,) for n in names]
+    depth = 1
+    while depth < max(map(len, parts)) and len({p[-depth:] for p in parts}) < len(parts):
+        depth += 1
+    return ["/".join(p[-depth:]) for p in parts]
+
+
 def build_variants(codecs: list[str], models: list[str], precision: str, log: Callable[[str], None]) -> list[Variant]:
     """Every (codec, setting) to run; unavailable codecs are skipped with a message."""
     from mapsqueeze.baselines import BASELINES, get_baseline, setting_label
@@ -106,7 +115,7 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
             names = models or shipped_models()
             if not names:
                 log("mapsqueeze: no shipped model; pass --models DIR,... (skipped)")
-            variants += _learned_variants(codec, {Path(n).name: load_model(n) for n in names}, precision)
+            variants += _learned_variants(codec, dict(zip(unique_labels(names), map(load_model, names))), precision)
         elif codec == "depoco-ref":
             refs = sorted(p for p in REFERENCE_DIR.glob("e[0-3]") if (p / "enc_best.pth").is_file())
             if not refs:

@@ -51,22 +51,21 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     n_source = len(source)
     source_tree = cKDTree(source)
 
-    def sorted_pair_keys(query_range: np.ndarray) -> np.ndarray:
-        """(query, source index) pairs within radius as one int64 key each, sorted (numpy and scipy release the
-        GIL here, so ranges run in parallel)."""
+    def sorted_pair_keys(query_range: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(query, source index) pairs within radius as one sorted int64 key each, and the count per query
+        (scipy and numpy release the GIL here, so query ranges run in parallel)."""
         if len(query_range) == 0:
-            return np.zeros(0, dtype=np.int64)
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         pairs = cKDTree(queries[query_range]).sparse_distance_matrix(source_tree, radius, output_type="ndarray")
-        return np.sort((pairs["i"].astype(np.int64) + query_range[0]) * n_source + pairs["j"])
+        rows = pairs["i"].astype(np.int64)
+        keys = np.sort((rows + query_range[0]) * n_source + pairs["j"])
+        return keys, np.bincount(rows, minlength=len(query_range))
 
     ranges = np.array_split(np.arange(len(queries)), max(1, min(torch.get_num_threads(), len(queries) // 256)))
-    if len(ranges) == 1:
-        keys = sorted_pair_keys(ranges[0])
-    else:
-        with ThreadPoolExecutor(len(ranges)) as pool:
-            keys = np.concatenate(list(pool.map(sorted_pair_keys, ranges)))
-    flat = keys % n_source
-    counts = np.bincount(keys // n_source, minlength=len(queries))
+    with ThreadPoolExecutor(len(ranges)) as pool:
+        parts = list(pool.map(sorted_pair_keys, ranges))
+    keys = np.concatenate([k for k, _ in parts])
+    counts = np.concatenate([c for _, c in parts])
     width = int(min(max_neighbors, counts.max(initial=0)))
     result = np.full((len(queries), width), len(source), dtype=np.int64)
     if width == 0:
@@ -76,5 +75,5 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     rows = np.repeat(np.arange(len(queries)), kept)
     cols = np.arange(kept.sum()) - np.repeat(np.cumsum(kept) - kept, kept)
     step = np.maximum((np.repeat(counts, kept) * cols) // max_neighbors, cols)
-    result[rows, cols] = flat[np.repeat(starts, kept) + step]
+    result[rows, cols] = keys[np.repeat(starts, kept) + step] - rows * n_source
     return result

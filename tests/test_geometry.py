@@ -1,0 +1,46 @@
+"""Grid subsampling and capped radius neighbours against brute force."""
+
+import numpy as np
+import torch
+
+from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
+
+
+def brute_force_neighbors(source, queries, radius, cap):
+    rows = []
+    for q in queries:
+        found = np.flatnonzero(np.linalg.norm(source.astype(np.float64) - q, axis=1) <= radius)
+        m = len(found)
+        rows.append(found if m <= cap else found[(m * np.arange(cap)) // cap])
+    width = max(len(r) for r in rows)
+    return np.array([np.r_[r, np.full(width - len(r), len(source))] for r in rows])
+
+
+def test_radius_neighbors_keep_an_evenly_spread_subset_whatever_the_thread_count():
+    rng = np.random.default_rng(3)
+    source = rng.random((3000, 3)).astype(np.float32)
+    queries = source[::5]
+    expected = brute_force_neighbors(source, queries, 0.12, 25)
+    assert (expected == len(source)).any() and (expected != len(source)).all(axis=1).any()  # both regimes occur
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            got = radius_neighbors(source, queries, 0.12, 25)
+            # distances equal to the radius may round either way in float32: compare away from the boundary
+            assert got.shape == expected.shape
+            assert (got == expected).mean() > 0.999
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_grid_subsample_keeps_the_point_nearest_each_voxel_centre():
+    rng = np.random.default_rng(4)
+    points = rng.random((5000, 3)).astype(np.float32)
+    kept = grid_subsample(points, 0.1)
+    voxels = np.floor(points / 0.1).astype(np.int64)
+    assert len(np.unique(voxels[kept], axis=0)) == len(kept) == len(np.unique(voxels, axis=0))
+    distance = np.linalg.norm(points - (voxels + 0.5) * 0.1, axis=1)
+    for index in kept[:200]:
+        same = (voxels == voxels[index]).all(axis=1)
+        assert distance[index] <= distance[same].min() + 1e-6
