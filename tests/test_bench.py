@@ -31,6 +31,7 @@ def test_benchmark_writes_csv_table_and_plot(tmp_path):
     per_cloud = [line for line in table.splitlines() if line.startswith("| street | mapsqueeze | e0,q |")]
     assert len(per_cloud) == 1 and per_cloud[0].endswith(("| yes |", "| no |", "| outside front |"))
     assert (tmp_path / "out" / "rd.png").stat().st_size > 10_000
+    assert (tmp_path / "out" / "rd_street.png").stat().st_size > 10_000
 
 
 def test_bench_cli_rejects_missing_input(tmp_path):

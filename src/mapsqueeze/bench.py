@@ -19,6 +19,7 @@ REFERENCE_DIR = Path(__file__).resolve().parents[3] / "shared" / "reference" / "
 """The reference checkpoints when the project sits beside ../shared (used by the `depoco-ref` codec)."""
 
 CLASSICAL = ("draco", "octree", "octree-ac", "gpcc")
+PER_CLOUD_PLOTS_UP_TO = 6  # benchmarks of at most this many clouds also get one rd_<cloud>.png per cloud
 
 
 @dataclass
@@ -124,7 +125,9 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
             for p in refs:
                 network = import_reference(p)
                 loaded[p.name] = CompressionModel(network, f"depoco-{p.name}", state_sha256(network))
-            variants += _learned_variants(codec, loaded, "f16")
+            # the paper's float16 embeddings, and the same networks through our entropy-coded q embeddings
+            for ref_precision in dict.fromkeys(("f16", precision)):
+                variants += _learned_variants(codec, loaded, ref_precision)
         elif codec in BASELINES:
             baseline = get_baseline(codec)
             if not baseline.available():
@@ -142,7 +145,7 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
 def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: list[str] | None = None,
                   precision: str = "q", split: str = "test", log: Callable[[str], None] = print,
                   progress: Callable[[str], None] | None = None) -> list[Row]:
-    """Run every variant on every cloud; write results.csv, results.md and rd_*.png into out_dir."""
+    """Run every variant on every cloud; write results.csv, results.md, rd.png (+ rd_<cloud>.png) into out_dir."""
     from mapsqueeze.geometry.normals import normals_pca
     from mapsqueeze.metrics import evaluate
 
@@ -216,7 +219,11 @@ def write_results(rows: list[Row], out_dir: Path) -> None:
                      f"{'outside front' if np.isnan(reference) else 'yes' if r.d_e < reference else 'no'} |")
     with atomic_output(out_dir / "results.md") as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
-    plot_rd(summary, out_dir)
+    plot_rd(summary, out_dir / "rd.png", f"mean over {len({r.cloud for r in rows})} clouds")
+    clouds = sorted({r.cloud for r in rows})
+    if len(clouds) <= PER_CLOUD_PLOTS_UP_TO:
+        for cloud in clouds:
+            plot_rd(summarise([r for r in rows if r.cloud == cloud]), out_dir / f"rd_{Path(cloud).name}.png", cloud)
 
 
 def per_cloud_comparison(rows: list[Row]) -> list[tuple[Row, float]]:
@@ -236,8 +243,15 @@ def per_cloud_comparison(rows: list[Row]) -> list[tuple[Row, float]]:
     return out
 
 
-def plot_rd(summary: list[dict], out_dir: Path) -> None:
-    """D_e, D_perp and IoU against bpp (log x), one line per codec (means over clouds)."""
+def series_name(result: dict) -> str:
+    """Plot line of a result: the classical codec, or a learned codec at one embedding precision ("mapsqueeze q")."""
+    if result["codec"] in CLASSICAL:
+        return result["codec"]
+    return f"{result['codec']} {result['setting'].rsplit(',', 1)[-1]}"
+
+
+def plot_rd(summary: list[dict], path: Path, title: str) -> None:
+    """D_e, D_perp and IoU against bpp (log x), one line per codec (means over clouds) -> PNG at path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -248,8 +262,8 @@ def plot_rd(summary: list[dict], out_dir: Path) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     for ax, key, label in zip(axes, ("d_e", "d_perp", "iou"), ("D_e (m)", "D_perp (m)", "IoU")):
-        for codec in sorted({s["codec"] for s in summary}):
-            pts = [s for s in summary if s["codec"] == codec]
+        for codec in sorted({series_name(s) for s in summary}):
+            pts = [s for s in summary if series_name(s) == codec]
             bpp = np.array([s["bpp"] for s in pts])
             val = np.array([s[key] for s in pts])
             if codec in CLASSICAL and len(pts) > 2:  # show the codec's Pareto front, not every setting
@@ -262,7 +276,8 @@ def plot_rd(summary: list[dict], out_dir: Path) -> None:
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend()
+    fig.suptitle(title)
     fig.tight_layout()
-    with atomic_output(out_dir / "rd.png") as tmp:
+    with atomic_output(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)

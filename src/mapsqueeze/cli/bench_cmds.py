@@ -36,4 +36,4 @@ def bench_cmd(
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
                              progress=lambda m: status.update(m))
     console.print((out / "results.md").read_text())
-    console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd.png")
+    console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd*.png")
