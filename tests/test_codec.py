@@ -257,6 +257,34 @@ def test_identical_bytes_on_repeated_runs(map_points, compressed, model_dir):
     assert mapsqueeze.compress(map_points, model=load_model(model_dir), precision="q") == compressed
 
 
+@pytest.mark.parametrize("suffix", [".ply", ".laz", ".npy"])
+def test_compress_file_streams_chunks_and_gives_the_in_memory_bytes(map_points, compressed, model, tmp_path, suffix):
+    from mapsqueeze.codec.compress import compress_chunks
+    from mapsqueeze.io import iter_points
+
+    source = tmp_path / f"map{suffix}"
+    write_points(source, map_points)
+    expected = compressed if suffix != ".laz" else mapsqueeze.compress(read_points(source), model=model)
+    spill = tmp_path / "spill"
+    spill.mkdir()
+    # chunks much smaller than a tile: every tile is assembled from several chunks' spill appends
+    streamed = compress_chunks(lambda: iter_points(source, chunk_points=997), model, Precision.q, spill_dir=spill)
+    assert streamed == expected
+    assert list(spill.iterdir()) == []  # spill files removed
+    mapsqueeze.compress_file(source, tmp_path / "map.msq", model=model)
+    assert (tmp_path / "map.msq").read_bytes() == expected
+
+
+def test_compress_file_reports_a_bad_chunk(model, tmp_path):
+    points = make_map()
+    points[7000] = np.nan
+    source = tmp_path / "bad.npy"
+    np.save(source, points)
+    with pytest.raises(InvalidPointCloudError, match="NaN"):
+        mapsqueeze.compress_file(source, tmp_path / "bad.msq", model=model)
+    assert not (tmp_path / "bad.msq").exists()
+
+
 def test_utm_coordinates_keep_codec_precision(model):
     rng = np.random.default_rng(4)
     sparse = UTM + rng.uniform(0, 1, (40, 3)) * [30.0, 20.0, 7.0]  # a few points per tile: all coded raw

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapsqueeze.codec.compress import ProgressCallback, compress_map
+from mapsqueeze.codec.compress import ProgressCallback, compress_chunks, compress_map
 from mapsqueeze.codec.container import TileCoding, open_container
 from mapsqueeze.codec.decompress import decompress_map, tile_world_bounds
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
-from mapsqueeze.io import atomic_write_bytes, read_points, write_points
+from mapsqueeze.io import atomic_write_bytes, iter_points, write_points
 
 DEFAULT_MODEL = "e1"
 DEFAULT_PRECISION = "q"
@@ -104,8 +104,13 @@ def info(source: bytes | str | os.PathLike) -> ContainerInfo:
 def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=DEFAULT_MODEL,
                   precision: str | Precision = DEFAULT_PRECISION, *,
                   progress: ProgressCallback | None = None) -> ContainerInfo:
-    """Read a point-cloud file, compress it, write the .msq atomically; returns the written file's summary."""
-    data = compress(read_points(input_path), model, precision, progress=progress)
+    """Read a point-cloud file in chunks, compress it, write the .msq atomically; returns the written file's summary.
+
+    Memory is bounded by a chunk of the input and one tile (see `compress_chunks`), not by the map's size; the
+    bytes are those `compress(read_points(input_path), ...)` gives.
+    """
+    precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
+    data = compress_chunks(lambda: iter_points(input_path), _model(model), precision, progress=progress)
     atomic_write_bytes(output_path, data)
     return info(data)
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+import tempfile
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,11 +84,73 @@ def compress_map(
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     origin = grid_origin(points, tile_size)
     tiles = tile_map(points, tile_size, origin=origin)
+    tile_points = ((tile.index, points[tile.point_indices]) for tile in tiles)
+    return _compress_tiles(tile_points, len(tiles), len(points), origin, model, precision, position_step_m,
+                           feature_step_std, progress)
+
+
+def compress_chunks(
+    chunks: Callable[[], Iterable[np.ndarray]],
+    model,
+    precision: Precision = Precision.q,
+    position_step_m: float | None = None,
+    feature_step_std: float = DEFAULT_FEATURE_STEP_STD,
+    progress: ProgressCallback | None = None,
+    spill_dir: str | os.PathLike | None = None,
+) -> bytes:
+    """compress_map for a map read in chunks (e.g. `mapsqueeze.io.iter_points`): memory bounded by one chunk and
+    one tile, whatever the map's size. Gives the same bytes as compress_map on the concatenated chunks.
+
+    chunks() is called twice (pass 1: extent and count; pass 2: points); each call must yield the same (n, 3)
+    float64 chunks in the same order. Pass 2 appends every tile's points to a float64 spill file in a temporary
+    directory (in spill_dir, default the system's; 24 bytes a point), then encodes the tiles one by one.
+    """
+    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
+    lowest, n_points = np.full(3, np.inf), 0
+    for chunk in chunks():
+        lowest = np.minimum(lowest, chunk.min(axis=0))
+        n_points += len(chunk)
+    if n_points == 0:
+        raise InvalidPointCloudError("map: the point cloud is empty")
+    origin = np.floor(lowest / tile_size) * tile_size  # = grid_origin of the whole map
+    with tempfile.TemporaryDirectory(prefix="mapsqueeze-tiles-", dir=spill_dir) as spill:
+        counts: dict[tuple[int, int, int], int] = {}
+        for chunk in chunks():
+            for tile in tile_map(chunk, tile_size, origin=origin):
+                with open(os.path.join(spill, _spill_name(tile.index)), "ab") as stream:
+                    stream.write(chunk[tile.point_indices].tobytes())
+                counts[tile.index] = counts.get(tile.index, 0) + len(tile.point_indices)
+        if sum(counts.values()) != n_points:
+            raise InvalidPointCloudError("map: the input changed between the two reading passes")
+        indices = sorted(counts)  # the order of tile_map: by (i, j, k)
+        tile_points = ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3))
+                       for index in indices)
+        return _compress_tiles(tile_points, len(indices), n_points, origin, model, precision, position_step_m,
+                               feature_step_std, progress)
+
+
+def _spill_name(index: tuple[int, int, int]) -> str:
+    return "tile_{}_{}_{}.f64".format(*index)
+
+
+def _compress_tiles(
+    tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray]],
+    n_tiles: int,
+    n_points: int,
+    origin: np.ndarray,
+    model,
+    precision: Precision,
+    position_step_m: float | None,
+    feature_step_std: float,
+    progress: ProgressCallback | None,
+) -> bytes:
+    """Encode (tile index, its float64 world points) pairs, given in tile order, and assemble the container."""
+    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     encoded = []
-    for done, tile in enumerate(tiles, start=1):
-        encoded.append(_encode_tile(tile, points, tile_size, model))
+    for done, (index, points) in enumerate(tile_points, start=1):
+        encoded.append(_encode_tile(index, origin + np.asarray(index) * tile_size, points, tile_size, model))
         if progress:
-            progress(done, len(tiles))
+            progress(done, n_tiles)
     n_features = int(model.config.embedding_dim)
     quant_model = None
     if precision is Precision.q:
@@ -102,8 +166,8 @@ def compress_map(
         subsampling_dist_m=float(model.config.subsampling_dist),
         tile_size=tuple(float(v) for v in tile_size),
         origin=tuple(float(v) for v in origin),
-        n_points=len(points),
-        n_tiles=len(tiles),
+        n_points=n_points,
+        n_tiles=n_tiles,
         n_features=n_features,
         raw_step_m=RAW_STEP_M,
         quant_model=quant_model,
@@ -111,22 +175,21 @@ def compress_map(
     return serialise_container(header, [tile.record() for tile in encoded])
 
 
-def _encode_tile(tile, points: np.ndarray, tile_size: np.ndarray, model) -> _EncodedTile:
-    tile_points = points[tile.point_indices]
+def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_points: np.ndarray,
+                 tile_size: np.ndarray, model) -> _EncodedTile:
     if len(tile_points) > MAX_POINTS_PER_TILE:
         raise InvalidPointCloudError(
-            f"tile {tile.index} holds {len(tile_points):,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may "
-            "hold")
-    lo, hi = quantise_bounds(tile_points - tile.origin, tile_size)
-    local = to_local(tile_points, frame_origin(tile.origin, lo, tile_size), tile_size)
+            f"tile {index} holds {len(tile_points):,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may hold")
+    lo, hi = quantise_bounds(tile_points - tile_origin, tile_size)
+    local = to_local(tile_points, frame_origin(tile_origin, lo, tile_size), tile_size)
     embedding = model.encode(local)
     n_embedding = len(embedding.points)
     raw = None
     if len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
         raw = encode_raw_tile(local, tile_size)
     if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:
-        return _EncodedTile(tile.index, len(local), lo, hi, None, None, raw)
-    return _EncodedTile(tile.index, len(local), lo, hi, embedding.points, embedding.features, raw)
+        return _EncodedTile(index, len(local), lo, hi, None, None, raw)
+    return _EncodedTile(index, len(local), lo, hi, embedding.points, embedding.features, raw)
 
 
 def _code_quantised(encoded: list[_EncodedTile], model, position_step_m: float | None, feature_step_std: float,

@@ -5,6 +5,7 @@ from mapsqueeze.io.atomic import atomic_output, atomic_write_bytes
 from mapsqueeze.io.formats import (
     LAS_SCALE_M,
     SUPPORTED_FORMATS,
+    iter_points,
     read_point_cloud,
     read_points,
     write_points,
@@ -25,6 +26,7 @@ __all__ = [
     "PointCloud",
     "atomic_output",
     "atomic_write_bytes",
+    "iter_points",
     "read_point_cloud",
     "read_points",
     "validate_attributes",

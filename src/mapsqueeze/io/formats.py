@@ -17,7 +17,7 @@ extent must stay below 2^31 * 0.1 mm (about 214 km) per axis.
 """
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -48,10 +48,17 @@ _LAS_INTEGER_LIMIT = 2**31 - 1
 Writer = Callable[[Path, np.ndarray, dict[str, np.ndarray]], tuple[str, ...]]
 
 
+ChunkReader = Callable[[Path, int], Iterator[np.ndarray]]
+
+DEFAULT_CHUNK_POINTS = 1 << 21
+"""Points per chunk of `iter_points` (48 MB of float64 x, y, z)."""
+
+
 @dataclass(frozen=True)
 class _Format:
     read: Callable[[Path], PointCloud]
     write: Writer
+    chunks: ChunkReader | None = None  # memory-bounded reader; None: the whole file in one chunk
 
 
 def _float32_columns(points: np.ndarray, columns: list[np.ndarray], label: str) -> bytes:
@@ -78,6 +85,21 @@ def _read_float32_columns(path: Path, names: tuple[str, ...], label: str) -> Poi
     return PointCloud(points, {name: table[:, 3 + column].copy() for column, name in enumerate(names)})
 
 
+def _chunks_float32_columns(path: Path, chunk_points: int, n_attributes: int, label: str) -> Iterator[np.ndarray]:
+    row_bytes = 4 * (3 + n_attributes)
+    size = path.stat().st_size
+    if size % row_bytes:
+        raise PointCloudFormatError(
+            f"{path}: {label} size {size:,} bytes is not a multiple of {row_bytes} (float32 x 3+{n_attributes}); "
+            "truncated or not this format"
+        )
+    if size == 0:
+        raise InvalidPointCloudError(f"{path}: the point cloud is empty")
+    table = np.memmap(path, dtype="<f4", mode="r").reshape(-1, 3 + n_attributes)
+    for start in range(0, len(table), chunk_points):
+        yield validate_points(table[start:start + chunk_points, :3], name=str(path))
+
+
 def _read_kitti(path: Path) -> PointCloud:
     return _read_float32_columns(path, ("reflectance",), "KITTI .bin")
 
@@ -101,9 +123,10 @@ def _write_nuscenes(path: Path, points: np.ndarray, attributes: dict[str, np.nda
     return tuple(name for name in _NUSCENES_ATTRIBUTES if name in attributes)
 
 
-def _read_ply(path: Path) -> PointCloud:
+def _ply_vertices(path: Path) -> tuple[np.ndarray, list[str]]:
+    """The vertex table (memory-mapped for binary PLY) and its scalar property names."""
     try:
-        ply = plyfile.PlyData.read(str(path), mmap="r")  # binary: memory-mapped, copied below
+        ply = plyfile.PlyData.read(str(path), mmap="r")
         vertex = ply["vertex"]
     except KeyError:
         raise PointCloudFormatError(f"{path}: PLY file has no vertex element") from None
@@ -113,10 +136,23 @@ def _read_ply(path: Path) -> PointCloud:
     missing = [axis for axis in ("x", "y", "z") if axis not in names]
     if missing:
         raise PointCloudFormatError(f"{path}: PLY vertex element has no {', '.join(missing)} property")
-    data = vertex.data
+    return vertex.data, names
+
+
+def _read_ply(path: Path) -> PointCloud:
+    data, names = _ply_vertices(path)
     points = validate_points(np.column_stack([data["x"], data["y"], data["z"]]), name=str(path))
     attributes = {name: np.array(data[name]) for name in names if name not in ("x", "y", "z")}
     return PointCloud(points, attributes)
+
+
+def _chunks_ply(path: Path, chunk_points: int) -> Iterator[np.ndarray]:
+    data, _ = _ply_vertices(path)
+    if len(data) == 0:
+        raise InvalidPointCloudError(f"{path}: the point cloud is empty")
+    for start in range(0, len(data), chunk_points):
+        part = data[start:start + chunk_points]
+        yield validate_points(np.column_stack([part["x"], part["y"], part["z"]]), name=str(path))
 
 
 _PLY_INTEGER_TYPES = (np.int32, np.uint32)
@@ -161,6 +197,24 @@ def _read_las(path: Path) -> PointCloud:
     except (laspy.errors.LaspyException, lazrs.LazrsError, ValueError, EOFError) as exc:
         raise PointCloudFormatError(f"{path}: corrupt LAS/LAZ file ({exc})") from None
     return PointCloud(validate_points(points, name=str(path)), attributes)
+
+
+def _chunks_las(path: Path, chunk_points: int) -> Iterator[np.ndarray]:
+    try:
+        with laspy.open(path) as reader:
+            declared, seen = reader.header.point_count, 0
+            if declared == 0:
+                raise InvalidPointCloudError(f"{path}: the point cloud is empty")
+            for part in reader.chunk_iterator(chunk_points):
+                seen += len(part)
+                if len(part):
+                    yield validate_points(np.column_stack([np.asarray(part.x), np.asarray(part.y),
+                                                           np.asarray(part.z)]), name=str(path))
+            if seen != declared:
+                raise PointCloudFormatError(
+                    f"{path}: LAS header declares {declared:,} points, the file holds {seen:,}")
+    except (laspy.errors.LaspyException, lazrs.LazrsError, ValueError, EOFError) as exc:
+        raise PointCloudFormatError(f"{path}: corrupt LAS/LAZ file ({exc})") from None
 
 
 def _write_las(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], compress: bool) -> tuple[str, ...]:
@@ -219,6 +273,21 @@ def _read_npy(path: Path) -> PointCloud:
     return PointCloud(points, {f"column{column}": table[:, column].copy() for column in range(3, table.shape[1])})
 
 
+def _chunks_npy(path: Path, chunk_points: int) -> Iterator[np.ndarray]:
+    try:
+        table = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, EOFError) as exc:
+        raise PointCloudFormatError(f"{path}: corrupt or non-numeric .npy file ({exc})") from None
+    if table.dtype.kind not in "iuf":
+        raise PointCloudFormatError(f"{path}: .npy holds {table.dtype}, expected numbers")
+    if table.ndim != 2 or table.shape[1] < 3:
+        raise PointCloudFormatError(f"{path}: .npy array has shape {table.shape}, expected N x 3 or N x (>3)")
+    if len(table) == 0:
+        raise InvalidPointCloudError(f"{path}: the point cloud is empty")
+    for start in range(0, len(table), chunk_points):
+        yield validate_points(table[start:start + chunk_points, :3], name=str(path))
+
+
 def _write_npy(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> tuple[str, ...]:
     """float64 N x (3 + k): x, y, z then the attributes in order (their names are not stored)."""
     with open(path, "wb") as stream:
@@ -227,15 +296,18 @@ def _write_npy(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]
 
 
 _FORMATS: dict[str, _Format] = {
-    "bin": _Format(_read_kitti, _write_kitti),
-    "pcd.bin": _Format(_read_nuscenes, _write_nuscenes),
-    "ply": _Format(_read_ply, partial(_write_ply, text=False)),
-    "ply-ascii": _Format(_read_ply, partial(_write_ply, text=True)),
+    "bin": _Format(_read_kitti, _write_kitti,
+                   partial(_chunks_float32_columns, n_attributes=1, label="KITTI .bin")),
+    "pcd.bin": _Format(_read_nuscenes, _write_nuscenes,
+                       partial(_chunks_float32_columns, n_attributes=len(_NUSCENES_ATTRIBUTES),
+                               label="nuScenes .pcd.bin")),
+    "ply": _Format(_read_ply, partial(_write_ply, text=False), _chunks_ply),
+    "ply-ascii": _Format(_read_ply, partial(_write_ply, text=True), _chunks_ply),
     "pcd": _Format(read_pcd, partial(write_pcd, encoding="binary")),
     "pcd-ascii": _Format(read_pcd, partial(write_pcd, encoding="ascii")),
-    "las": _Format(_read_las, partial(_write_las, compress=False)),
-    "laz": _Format(_read_las, partial(_write_las, compress=True)),
-    "npy": _Format(_read_npy, _write_npy),
+    "las": _Format(_read_las, partial(_write_las, compress=False), _chunks_las),
+    "laz": _Format(_read_las, partial(_write_las, compress=True), _chunks_las),
+    "npy": _Format(_read_npy, _write_npy, _chunks_npy),
 }
 
 SUPPORTED_FORMATS: tuple[str, ...] = tuple(_FORMATS)
@@ -273,6 +345,31 @@ def read_point_cloud(path: str | os.PathLike, format: str | None = None) -> Poin
     reader = _resolve_format(path, format).read
     try:
         return reader(path)
+    except OSError as exc:
+        raise PointCloudFormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
+def iter_points(path: str | os.PathLike, format: str | None = None,
+                chunk_points: int = DEFAULT_CHUNK_POINTS) -> Iterator[np.ndarray]:
+    """Yield a file's points as validated (<= chunk_points, 3) float64 chunks, in file order.
+
+    Binary PLY, .bin, .pcd.bin and .npy are memory-mapped and LAS/LAZ read chunk by chunk, so memory stays
+    bounded by one chunk; ASCII PLY and PCD are read whole (one chunk). Errors as `read_point_cloud`, raised when
+    the bad part is reached.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise PointCloudFormatError(f"{path}: is a directory, not a point-cloud file")
+    if not path.exists():
+        raise PointCloudFormatError(f"{path}: no such file")
+    if chunk_points < 1:
+        raise ValueError("chunk_points must be >= 1")
+    chunks = _resolve_format(path, format).chunks
+    try:
+        if chunks is None:
+            yield read_point_cloud(path, format).points
+        else:
+            yield from chunks(path, chunk_points)
     except OSError as exc:
         raise PointCloudFormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
