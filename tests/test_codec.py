@@ -275,6 +275,20 @@ def test_compress_file_streams_chunks_and_gives_the_in_memory_bytes(map_points, 
     assert (tmp_path / "map.msq").read_bytes() == expected
 
 
+@pytest.mark.parametrize("suffix", [".ply", ".las", ".npy", ".pcd"])
+def test_decompress_file_streams_tiles_to_the_output(compressed, model, tmp_path, suffix):
+    from mapsqueeze.io import LAS_SCALE_M
+
+    (tmp_path / "map.msq").write_bytes(compressed)
+    spill = tmp_path / "spill"
+    spill.mkdir()
+    n = mapsqueeze.decompress_file(tmp_path / "map.msq", tmp_path / f"out{suffix}", model=model, spill_dir=spill)
+    expected = mapsqueeze.decompress(compressed, model=model)
+    written = read_points(tmp_path / f"out{suffix}")
+    assert n == len(expected) == len(written) and list(spill.iterdir()) == []
+    np.testing.assert_allclose(written, expected, rtol=0, atol=LAS_SCALE_M if suffix == ".las" else 0)
+
+
 def test_compress_file_reports_a_bad_chunk(model, tmp_path):
     points = make_map()
     points[7000] = np.nan

@@ -420,3 +420,61 @@ def test_cli_convert(tmp_path):
     assert missing.returncode == 2
     assert missing.stderr.startswith("error: ") and missing.stderr.count("\n") == 1
     assert "absent.ply" in missing.stderr and not (tmp_path / "out.ply").exists()
+
+
+# --- chunked reading ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["a.ply", "a.npy", "a.las", "a.laz", "a.bin", "a.pcd.bin", "a.pcd"])
+def test_iter_points_chunks_concatenate_to_read_points(tmp_path, name):
+    from mapsqueeze.io import iter_points
+
+    rng = np.random.default_rng(11)
+    points = rng.uniform(-50, 50, (5003, 3))
+    write_points(tmp_path / name, points)
+    chunks = list(iter_points(tmp_path / name, chunk_points=1000))
+    bound = 5003 if name.endswith(".pcd") else 1000  # PCD is read whole (one chunk)
+    assert all(len(chunk) <= bound and chunk.dtype == np.float64 for chunk in chunks)
+    np.testing.assert_array_equal(np.concatenate(chunks), read_points(tmp_path / name))
+
+
+def test_iter_points_reports_bad_files(tmp_path):
+    from mapsqueeze.io import iter_points
+
+    (tmp_path / "cut.bin").write_bytes(np.zeros(4 * 4 * 10 + 3, dtype=np.uint8).tobytes())
+    with pytest.raises(PointCloudFormatError, match="not a multiple"):
+        list(iter_points(tmp_path / "cut.bin"))
+    (tmp_path / "empty.bin").write_bytes(b"")
+    with pytest.raises(InvalidPointCloudError, match="empty"):
+        list(iter_points(tmp_path / "empty.bin"))
+    write_points(tmp_path / "a.las", np.random.default_rng(0).random((3000, 3)))
+    data = (tmp_path / "a.las").read_bytes()
+    (tmp_path / "cut.las").write_bytes(data[: len(data) - 2000])
+    with pytest.raises(PointCloudFormatError):
+        list(iter_points(tmp_path / "cut.las", chunk_points=500))
+    with pytest.raises(PointCloudFormatError, match="no such file"):
+        list(iter_points(tmp_path / "missing.ply"))
+
+
+@pytest.mark.parametrize("name", ["a.ply", "a.npy", "a.las", "a.laz", "a.pcd", "a.ply-ascii"])
+def test_write_point_chunks_matches_write_points(tmp_path, name):
+    from mapsqueeze.io import write_point_chunks
+
+    points = UTM_OFFSET_M + np.random.default_rng(12).uniform(0, 100, (4001, 3))
+    format = "ply-ascii" if name.endswith("ply-ascii") else None
+    path = tmp_path / name.replace(".ply-ascii", ".ply")
+    n = write_point_chunks(path, lambda: (points[i:i + 700] for i in range(0, len(points), 700)), format=format)
+    write_points(tmp_path / ("ref_" + path.name), points, format=format)
+    assert n == len(points)
+    np.testing.assert_array_equal(read_points(path), read_points(tmp_path / ("ref_" + path.name)))
+
+
+def test_write_point_chunks_refuses_lossy_float32_and_leaves_no_file(tmp_path):
+    from mapsqueeze.io import write_point_chunks
+
+    points = UTM_OFFSET_M + np.zeros((10, 3))
+    with pytest.raises(InvalidPointCloudError, match="float32"):
+        write_point_chunks(tmp_path / "a.bin", lambda: iter([points]))
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(InvalidPointCloudError, match="empty"):
+        write_point_chunks(tmp_path / "a.ply", lambda: iter([]))

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -16,10 +17,11 @@ import numpy as np
 
 from mapsqueeze.codec.compress import ProgressCallback, compress_chunks, compress_map
 from mapsqueeze.codec.container import TileCoding, open_container
-from mapsqueeze.codec.decompress import decompress_map, tile_world_bounds
+from mapsqueeze.codec.decompress import decompress_map, iter_decoded_tiles, tile_world_bounds
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
-from mapsqueeze.io import atomic_write_bytes, iter_points, write_points
+from mapsqueeze.io import atomic_write_bytes, iter_points, write_point_chunks
+from mapsqueeze.io.formats import DEFAULT_CHUNK_POINTS
 
 DEFAULT_MODEL = "e1"
 DEFAULT_PRECISION = "q"
@@ -117,10 +119,23 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
 
 def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, *, model=None,
                     bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
-                    progress: ProgressCallback | None = None) -> int:
-    """Decode a .msq file (seeking to the tiles needed) and write the points atomically; returns the count."""
-    points = decompress(input_path, model=model, bbox=bbox, density=density, n_points=n_points, progress=progress)
-    if not len(points):
-        raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
-    write_points(output_path, points)
-    return len(points)
+                    progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None) -> int:
+    """Decode a .msq file (seeking to the tiles needed) and write the points atomically; returns the count.
+
+    Tiles are decoded one at a time into a float64 spill file (in spill_dir, default the system's temporary
+    directory; 24 bytes a point), which is then written out chunk by chunk: memory stays bounded by a tile and a
+    chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`).
+    """
+    with tempfile.TemporaryDirectory(prefix="mapsqueeze-decoded-", dir=spill_dir) as spill:
+        spill_path = os.path.join(spill, "points.f64")
+        with open(spill_path, "wb") as stream:
+            for tile_points in iter_decoded_tiles(input_path, model, bbox, density, n_points, progress):
+                stream.write(np.ascontiguousarray(tile_points, dtype="<f8").tobytes())
+        if os.path.getsize(spill_path) == 0:
+            raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
+        points = np.memmap(spill_path, dtype="<f8", mode="r").reshape(-1, 3)
+        try:
+            return write_point_chunks(output_path, lambda: (points[start:start + DEFAULT_CHUNK_POINTS]
+                                                            for start in range(0, len(points), DEFAULT_CHUNK_POINTS)))
+        finally:
+            del points  # release the mapping before the directory is removed

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -128,6 +128,20 @@ def decompress_map(
     read and decoded, and the output is cropped to it. density / n_points: see `target_counts`.
     Memory: the output array plus one tile at a time.
     """
+    parts = list(iter_decoded_tiles(source, model, bbox, density, n_points, progress))
+    return np.concatenate(parts) if parts else np.zeros((0, 3), dtype=np.float64)
+
+
+def iter_decoded_tiles(
+    source: bytes | str | os.PathLike,
+    model=None,
+    bbox: Sequence[float] | None = None,
+    density: float | None = None,
+    n_points: int | None = None,
+    progress: ProgressCallback | None = None,
+) -> Iterator[np.ndarray]:
+    """decompress_map one tile at a time: yields each decoded tile's (k, 3) float64 world points, in file order
+    (tiles left empty by the counts or the bbox crop are skipped). Memory: one tile."""
     reader, stream = open_container(source)
     with stream:
         header = reader.header
@@ -137,18 +151,15 @@ def decompress_map(
         counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points)
         if any(reader.entries[p].coding is TileCoding.network for p in selected):
             model = _load_matching_model(model, header, reader.name)
-        output = np.empty((sum(counts), 3), dtype=np.float64)
-        filled = 0
         for done, (position, count) in enumerate(zip(selected, counts), start=1):
             if count:
                 world = tile_frame(header, reader.entries[position]) + decode_tile(reader, position, model, count)
                 if box is not None:
                     world = world[((world >= box[0]) & (world <= box[1])).all(axis=1)]
-                output[filled:filled + len(world)] = world
-                filled += len(world)
+                if len(world):
+                    yield world
             if progress:
                 progress(done, len(selected))
-        return output[:filled]
 
 
 def _intersects(a: np.ndarray, b: np.ndarray) -> bool:

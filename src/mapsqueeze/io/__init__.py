@@ -8,6 +8,7 @@ from mapsqueeze.io.formats import (
     iter_points,
     read_point_cloud,
     read_points,
+    write_point_chunks,
     write_points,
 )
 from mapsqueeze.io.pointcloud import (
@@ -31,5 +32,6 @@ __all__ = [
     "read_points",
     "validate_attributes",
     "validate_points",
+    "write_point_chunks",
     "write_points",
 ]

@@ -17,7 +17,7 @@ extent must stay below 2^31 * 0.1 mm (about 214 km) per axis.
 """
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -317,21 +317,25 @@ _EXTENSIONS = {".pcd.bin": "pcd.bin", ".bin": "bin", ".ply": "ply", ".pcd": "pcd
                ".npy": "npy"}
 
 
-def _resolve_format(path: Path, format: str | None) -> _Format:
+def _format_name(path: Path, format: str | None) -> str:
     if format is not None:
         name = format.lower().lstrip(".")
         if name not in _FORMATS:
             raise PointCloudFormatError(
                 f"{path}: unknown point-cloud format {format!r} (supported: {', '.join(SUPPORTED_FORMATS)})"
             )
-        return _FORMATS[name]
+        return name
     lower = path.name.lower()
     for extension, name in _EXTENSIONS.items():
         if lower.endswith(extension):
-            return _FORMATS[name]
+            return name
     raise PointCloudFormatError(
         f"{path}: unknown point-cloud extension (known: {', '.join(_EXTENSIONS)}); set the format explicitly"
     )
+
+
+def _resolve_format(path: Path, format: str | None) -> _Format:
+    return _FORMATS[_format_name(path, format)]
 
 
 def read_point_cloud(path: str | os.PathLike, format: str | None = None) -> PointCloud:
@@ -377,6 +381,108 @@ def iter_points(path: str | os.PathLike, format: str | None = None,
 def read_points(path: str | os.PathLike, format: str | None = None) -> np.ndarray:
     """Read only the points, (N, 3) float64 metres (see `read_point_cloud`)."""
     return read_point_cloud(path, format).points
+
+
+@dataclass(frozen=True)
+class _ChunkStats:
+    """What a format's header needs before the first chunk is written."""
+
+    n_points: int
+    lowest: np.ndarray
+    highest: np.ndarray
+    float32_error: float
+
+
+def _chunk_stats(chunks: Callable[[], Iterable[np.ndarray]], path: Path) -> _ChunkStats:
+    n, lowest, highest, error = 0, np.full(3, np.inf), np.full(3, -np.inf), 0.0
+    for chunk in chunks():
+        chunk = validate_points(chunk, name=f"points for {path}")
+        n += len(chunk)
+        lowest, highest = np.minimum(lowest, chunk.min(axis=0)), np.maximum(highest, chunk.max(axis=0))
+        error = max(error, float32_error_m(chunk))
+    if n == 0:
+        raise InvalidPointCloudError(f"points for {path}: the point cloud is empty")
+    return _ChunkStats(n, lowest, highest, error)
+
+
+def _stream_float32_columns(stream, chunks, stats: _ChunkStats, n_attributes: int, label: str) -> None:
+    if stats.float32_error > FLOAT32_MAX_ERROR_M:
+        raise InvalidPointCloudError(
+            f"{label} stores float32 x, y, z, which would move points by up to {stats.float32_error * 1e3:.1f} mm; "
+            "shift the cloud towards the origin or write .ply/.las"
+        )
+    for chunk in chunks():
+        stream.write(np.column_stack([chunk, np.zeros((len(chunk), n_attributes))]).astype("<f4").tobytes())
+
+
+def _stream_ply(stream, chunks, stats: _ChunkStats) -> None:
+    """Binary little-endian PLY with one vertex element x, y, z (float32 unless that errs > 1 mm)."""
+    xyz_code, ply_type = ("<f4", "float") if stats.float32_error <= FLOAT32_MAX_ERROR_M else ("<f8", "double")
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {stats.n_points}",
+              *(f"property {ply_type} {axis}" for axis in "xyz"), "end_header"]
+    stream.write(("\n".join(header) + "\n").encode("ascii"))
+    for chunk in chunks():
+        stream.write(chunk.astype(xyz_code).tobytes())
+
+
+def _stream_npy(stream, chunks, stats: _ChunkStats) -> None:
+    np.lib.format.write_array_header_1_0(
+        stream, {"descr": "<f8", "fortran_order": False, "shape": (stats.n_points, 3)})
+    for chunk in chunks():
+        stream.write(np.ascontiguousarray(chunk, dtype="<f8").tobytes())
+
+
+def _stream_las(stream, chunks, stats: _ChunkStats, compress: bool) -> None:
+    """As _write_las (same scale, offset and limits), chunk by chunk."""
+    offset = np.floor(stats.lowest)
+    extent = (stats.highest - offset) / LAS_SCALE_M
+    if extent.max() > _LAS_INTEGER_LIMIT:
+        raise InvalidPointCloudError(
+            f"the cloud spans {extent.max() * LAS_SCALE_M / 1e3:.0f} km, more than LAS can hold at "
+            f"{LAS_SCALE_M * 1e3:g} mm resolution (about {_LAS_INTEGER_LIMIT * LAS_SCALE_M / 1e3:.0f} km)"
+        )
+    header = laspy.LasHeader(version="1.4", point_format=_LAS_POINT_FORMAT)
+    header.offsets = offset
+    header.scales = np.full(3, LAS_SCALE_M)
+    with laspy.open(stream, mode="w", header=header, do_compress=compress, closefd=False,
+                    laz_backend=laspy.LazBackend.Lazrs if compress else None) as writer:
+        for chunk in chunks():
+            record = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=header)
+            record.x, record.y, record.z = chunk[:, 0], chunk[:, 1], chunk[:, 2]
+            writer.write_points(record)
+
+
+_CHUNK_WRITERS = {
+    "bin": partial(_stream_float32_columns, n_attributes=1, label="KITTI .bin"),
+    "pcd.bin": partial(_stream_float32_columns, n_attributes=len(_NUSCENES_ATTRIBUTES), label="nuScenes .pcd.bin"),
+    "ply": _stream_ply,
+    "npy": _stream_npy,
+    "las": partial(_stream_las, compress=False),
+    "laz": partial(_stream_las, compress=True),
+}
+
+
+def write_point_chunks(path: str | os.PathLike, chunks: Callable[[], Iterable[np.ndarray]],
+                       format: str | None = None) -> int:
+    """Write the points of chunks() (called twice: statistics, then data) atomically; returns the point count.
+
+    Binary PLY, .bin, .pcd.bin, .npy and LAS/LAZ are written chunk by chunk (memory bounded by one chunk), with
+    the same layout and precision rules as `write_points`; ASCII PLY and PCD are assembled in memory.
+    """
+    path = Path(path)
+    name = _format_name(path, format)
+    stats = _chunk_stats(chunks, path)
+    if name not in _CHUNK_WRITERS:
+        write_points(path, np.concatenate(list(chunks())), format=name)
+        return stats.n_points
+    try:
+        with atomic_output(path) as temp, open(temp, "wb") as stream:
+            _CHUNK_WRITERS[name](stream, chunks, stats)
+    except OSError as exc:
+        raise PointCloudFormatError(f"{path}: cannot write ({exc.strerror or exc})") from None
+    except InvalidPointCloudError as exc:
+        raise InvalidPointCloudError(f"{path}: {exc}") from None
+    return stats.n_points
 
 
 def write_points(
