@@ -52,3 +52,16 @@ def test_model_labels_are_unique_path_suffixes():
 
     assert unique_labels(["e1", "runs/x/e0"]) == ["e1", "e0"]
     assert unique_labels(["runs/a/best", "runs/b/best"]) == ["a/best", "b/best"]
+
+
+def test_benchmark_resumes_and_extends_an_earlier_run(tmp_path):
+    rng = np.random.default_rng(1)
+    write_points(tmp_path / "patch.ply", np.c_[rng.random((4000, 2)) * 20, rng.normal(0, 0.02, 4000)])
+    save_model(build_model(ModelConfig.for_rate("e0")), tmp_path / "e0")
+    first = run_benchmark([tmp_path / "patch.ply"], ["octree"], tmp_path / "out", log=lambda m: None)
+    second = run_benchmark([tmp_path / "patch.ply"], ["octree", "mapsqueeze"], tmp_path / "out",
+                           models=[str(tmp_path / "e0")], log=lambda m: None)
+    assert second[: len(first)] == first  # kept from the CSV, not run again (timings would differ)
+    assert {r.codec for r in second[len(first):]} == {"mapsqueeze"}
+    again = run_benchmark([tmp_path / "patch.ply"], ["octree"], tmp_path / "out", log=lambda m: None, fresh=True)
+    assert len(again) == len(first) and [r.encode_s for r in again] != [r.encode_s for r in first]

@@ -144,17 +144,25 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
 
 def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: list[str] | None = None,
                   precision: str = "q", split: str = "test", log: Callable[[str], None] = print,
-                  progress: Callable[[str], None] | None = None) -> list[Row]:
-    """Run every variant on every cloud; write results.csv, results.md, rd.png (+ rd_<cloud>.png) into out_dir."""
+                  progress: Callable[[str], None] | None = None, fresh: bool = False) -> list[Row]:
+    """Run every variant on every cloud; write results.csv, results.md, rd.png (+ rd_<cloud>.png) into out_dir.
+
+    Results already in out_dir/results.csv are kept and their (cloud, codec, setting) not run again, so a long
+    benchmark can be resumed or extended by more codecs later; fresh=True starts over.
+    """
     from mapsqueeze.geometry.normals import normals_pca
     from mapsqueeze.metrics import evaluate
 
     out_dir.mkdir(parents=True, exist_ok=True)
     variants = build_variants(codecs, models or [], precision, log)
-    rows: list[Row] = []
+    rows: list[Row] = [] if fresh else read_results(out_dir / "results.csv")
+    done = {(r.cloud, r.codec, r.setting) for r in rows}
     for cloud in collect_clouds(inputs, split):
+        todo = [v for v in variants if (cloud.name, v.codec, v.setting) not in done]
+        if not todo:
+            continue
         normals = normals_pca(cloud.points)
-        for v in variants:
+        for v in todo:
             if progress:
                 progress(f"{cloud.name}: {v.codec} {v.setting}")
             t0 = time.perf_counter()
@@ -172,6 +180,19 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
         raise MapsqueezeError("nothing to benchmark (no clouds or no available codec)")
     write_results(rows, out_dir)
     return rows
+
+
+def read_results(path: Path) -> list[Row]:
+    """Rows of an earlier results.csv (none when absent)."""
+    if not path.is_file():
+        return []
+    types = {name: field.type for name, field in Row.__dataclass_fields__.items()}
+    casts = {"str": str, "int": int, "float": float}
+    with open(path, newline="") as f:
+        try:
+            return [Row(**{k: casts[types[k]](v) for k, v in record.items()}) for record in csv.DictReader(f)]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapsqueezeError(f"{path}: not a results.csv of this version ({exc}); use --fresh") from None
 
 
 def summarise(rows: list[Row]) -> list[dict]:

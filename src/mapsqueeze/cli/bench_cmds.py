@@ -23,6 +23,8 @@ def bench_cmd(
                                                     "default: every shipped model"),
     precision: str = typer.Option("q", help="Embedding precision of mapsqueeze: q, f16 or f32"),
     split: str = typer.Option("test", help="Split of dataset folders to run on: train, val, test or all (a held-out dataset)"),
+    fresh: bool = typer.Option(False, "--fresh", help="Ignore results already in the output folder (default: keep "
+                                                      "them and run only the missing cloud/codec/setting rows)"),
 ):
     """Run every codec and setting on every cloud: bytes, bpp, D_e, D_perp, IoU, encode/decode seconds."""
     from mapsqueeze.bench import run_benchmark
@@ -34,6 +36,6 @@ def bench_cmd(
         rows = run_benchmark(inputs, [c.strip() for c in codecs.split(",") if c.strip()], out,
                              models=[m.strip() for m in models.split(",")] if models else None,
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
-                             progress=lambda m: status.update(m))
+                             progress=lambda m: status.update(m), fresh=fresh)
     console.print((out / "results.md").read_text())
     console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd*.png")
