@@ -17,7 +17,7 @@ import numpy as np
 
 from mapsqueeze.codec.compress import ProgressCallback, compress_chunks, compress_map
 from mapsqueeze.codec.container import TileCoding, open_container
-from mapsqueeze.codec.decompress import decompress_map, iter_decoded_tiles, tile_world_bounds
+from mapsqueeze.codec.decompress import iter_decoded_tiles, tile_world_bounds
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import atomic_write_bytes, iter_points, write_point_chunks
@@ -56,7 +56,8 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
     tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
     choose another density. model defaults to the one named in the file; its weights must match the file's.
     """
-    return decompress_map(data, model, bbox, density, n_points, progress)
+    tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress))
+    return np.concatenate(tiles) if tiles else np.zeros((0, 3), dtype=np.float64)
 
 
 @dataclass(frozen=True)

@@ -2,10 +2,10 @@
 
 from mapsqueeze.codec.compress import compress_map
 from mapsqueeze.codec.container import ContainerReader, Header, TileCoding, TileEntry, open_container
-from mapsqueeze.codec.decompress import decompress_map
+from mapsqueeze.codec.decompress import iter_decoded_tiles
 from mapsqueeze.codec.embedding import Precision
 
 __all__ = [
-    "ContainerReader", "Header", "Precision", "TileCoding", "TileEntry", "compress_map", "decompress_map",
+    "ContainerReader", "Header", "Precision", "TileCoding", "TileEntry", "compress_map", "iter_decoded_tiles",
     "open_container",
 ]

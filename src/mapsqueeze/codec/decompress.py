@@ -113,25 +113,6 @@ def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np
     return np.clip(local, np.float32(0), entry.frame_extent_m(tile_size).astype(np.float32))
 
 
-def decompress_map(
-    source: bytes | str | os.PathLike,
-    model=None,
-    bbox: Sequence[float] | None = None,
-    density: float | None = None,
-    n_points: int | None = None,
-    progress: ProgressCallback | None = None,
-) -> np.ndarray:
-    """Decode a .msq buffer or file to (K, 3) float64 world points.
-
-    model: a CompressionModel, a name or path (default: the model id stored in the file); its weights must match
-    the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
-    read and decoded, and the output is cropped to it. density / n_points: see `target_counts`.
-    Memory: the output array plus one tile at a time.
-    """
-    parts = list(iter_decoded_tiles(source, model, bbox, density, n_points, progress))
-    return np.concatenate(parts) if parts else np.zeros((0, 3), dtype=np.float64)
-
-
 def iter_decoded_tiles(
     source: bytes | str | os.PathLike,
     model=None,
@@ -140,8 +121,13 @@ def iter_decoded_tiles(
     n_points: int | None = None,
     progress: ProgressCallback | None = None,
 ) -> Iterator[np.ndarray]:
-    """decompress_map one tile at a time: yields each decoded tile's (k, 3) float64 world points, in file order
-    (tiles left empty by the counts or the bbox crop are skipped). Memory: one tile."""
+    """Decode a .msq buffer or file tile by tile: yields each tile's (k, 3) float64 world points, in file order
+    (tiles left empty by the counts or the bbox crop are skipped). Memory: one tile.
+
+    model: a CompressionModel, a name or path (default: the model id stored in the file); its weights must match
+    the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
+    read and decoded, and the output is cropped to it. density / n_points: see `target_counts`.
+    """
     reader, stream = open_container(source)
     with stream:
         header = reader.header

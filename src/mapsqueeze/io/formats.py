@@ -217,14 +217,10 @@ def _chunks_las(path: Path, chunk_points: int) -> Iterator[np.ndarray]:
         raise PointCloudFormatError(f"{path}: corrupt LAS/LAZ file ({exc})") from None
 
 
-def _write_las(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], compress: bool) -> tuple[str, ...]:
-    """LAS 1.4 point format 0, scale LAS_SCALE_M, offset = per-axis minimum rounded down to whole metres.
-
-    `intensity` goes to the standard uint16 field (refused unless it fits exactly); other attributes become
-    extra-bytes dimensions with their own dtype; names of other standard point-format-0 fields are refused.
-    """
-    offset = np.floor(points.min(axis=0))
-    extent = (points.max(axis=0) - offset) / LAS_SCALE_M
+def _las_header(lowest: np.ndarray, highest: np.ndarray) -> laspy.LasHeader:
+    """LAS 1.4 point format 0 header: scale LAS_SCALE_M, offset = the minimum rounded down to whole metres."""
+    offset = np.floor(lowest)
+    extent = (highest - offset) / LAS_SCALE_M
     if extent.max() > _LAS_INTEGER_LIMIT:
         raise InvalidPointCloudError(
             f"the cloud spans {extent.max() * LAS_SCALE_M / 1e3:.0f} km, more than LAS can hold at "
@@ -233,6 +229,16 @@ def _write_las(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]
     header = laspy.LasHeader(version="1.4", point_format=_LAS_POINT_FORMAT)
     header.offsets = offset
     header.scales = np.full(3, LAS_SCALE_M)
+    return header
+
+
+def _write_las(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], compress: bool) -> tuple[str, ...]:
+    """LAS 1.4 point format 0, scale LAS_SCALE_M, offset = per-axis minimum rounded down to whole metres.
+
+    `intensity` goes to the standard uint16 field (refused unless it fits exactly); other attributes become
+    extra-bytes dimensions with their own dtype; names of other standard point-format-0 fields are refused.
+    """
+    header = _las_header(points.min(axis=0), points.max(axis=0))
     standard = {name.lower() for name in header.point_format.dimension_names}
     extra = {name: values for name, values in attributes.items() if name != "intensity"}
     clashing = [name for name in extra if name.lower() in standard]
@@ -434,16 +440,7 @@ def _stream_npy(stream, chunks, stats: _ChunkStats) -> None:
 
 def _stream_las(stream, chunks, stats: _ChunkStats, compress: bool) -> None:
     """As _write_las (same scale, offset and limits), chunk by chunk."""
-    offset = np.floor(stats.lowest)
-    extent = (stats.highest - offset) / LAS_SCALE_M
-    if extent.max() > _LAS_INTEGER_LIMIT:
-        raise InvalidPointCloudError(
-            f"the cloud spans {extent.max() * LAS_SCALE_M / 1e3:.0f} km, more than LAS can hold at "
-            f"{LAS_SCALE_M * 1e3:g} mm resolution (about {_LAS_INTEGER_LIMIT * LAS_SCALE_M / 1e3:.0f} km)"
-        )
-    header = laspy.LasHeader(version="1.4", point_format=_LAS_POINT_FORMAT)
-    header.offsets = offset
-    header.scales = np.full(3, LAS_SCALE_M)
+    header = _las_header(stats.lowest, stats.highest)
     with laspy.open(stream, mode="w", header=header, do_compress=compress, closefd=False,
                     laz_backend=laspy.LazBackend.Lazrs if compress else None) as writer:
         for chunk in chunks():
