@@ -52,6 +52,7 @@ def test_model_labels_are_unique_path_suffixes():
 
     assert unique_labels(["e1", "runs/x/e0"]) == ["e1", "e0"]
     assert unique_labels(["runs/a/best", "runs/b/best"]) == ["a/best", "b/best"]
+    assert unique_labels(["runs/e0/best"]) == ["e0/best"]
 
 
 def test_benchmark_resumes_and_extends_an_earlier_run(tmp_path):

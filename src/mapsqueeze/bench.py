@@ -96,9 +96,10 @@ def state_sha256(network) -> str:
 
 
 def unique_labels(names: list[str]) -> list[str]:
-    """Shortest path suffixes that tell the models apart: runs/a/best, runs/b/best -> a/best, b/best."""
+    """Shortest path suffixes that tell the models apart: runs/a/best, runs/b/best -> a/best, b/best (a training
+    run's generic best/ or last/ folder always keeps its run's name)."""
     parts = [Path(n).parts or (n,) for n in names]
-    depth = 1
+    depth = 2 if any(p[-1] in ("best", "last") and len(p) > 1 for p in parts) else 1
     while depth < max(map(len, parts)) and len({p[-depth:] for p in parts}) < len(parts):
         depth += 1
     return ["/".join(p[-depth:]) for p in parts]
