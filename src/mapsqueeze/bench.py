@@ -227,16 +227,26 @@ def write_results(rows: list[Row], out_dir: Path) -> None:
         writer.writeheader()
         writer.writerows(asdict(r) for r in rows)
     summary = summarise(rows)
+    comparison = per_cloud_comparison(rows)
+    wins: dict[tuple[str, str], list[bool]] = {}
+    for r, reference in comparison:
+        if not np.isnan(reference):
+            wins.setdefault((r.codec, r.setting), []).append(bool(r.d_e < reference))
     lines = ["| codec | setting | clouds | bpp | D_e (m) | D_perp (m) | IoU | encode (s) | decode (s) | "
-             "best classical D_e at this bpp (m) |", "|---" * 10 + "|"]
+             "best classical D_e at this bpp (m) | beats the classical front on (clouds) |", "|---" * 11 + "|"]
     for s in summary:
-        ref = "" if s["codec"] in CLASSICAL else f"{classical_d_e_at(summary, s['bpp']):.4f}"
+        ref, won = "", ""
+        if s["codec"] not in CLASSICAL:
+            ref = f"{classical_d_e_at(summary, s['bpp']):.4f}"
+            outcome = wins.get((s["codec"], s["setting"]), [])
+            won = f"{sum(outcome)} / {len(outcome)}"
         lines.append(f"| {s['codec']} | {s['setting']} | {s['clouds']} | {s['bpp']:.4f} | {s['d_e']:.4f} | "
-                     f"{s['d_perp']:.4f} | {s['iou']:.3f} | {s['encode_s']:.2f} | {s['decode_s']:.2f} | {ref} |")
+                     f"{s['d_perp']:.4f} | {s['iou']:.3f} | {s['encode_s']:.2f} | {s['decode_s']:.2f} | {ref} | "
+                     f"{won} |")
     lines += ["", "Per cloud: each learned setting against the classical Pareto front of the same cloud.", "",
               "| cloud | codec | setting | bpp | D_e (m) | best classical D_e at this bpp (m) | better |",
               "|---" * 7 + "|"]
-    for r, reference in per_cloud_comparison(rows):
+    for r, reference in comparison:
         lines.append(f"| {r.cloud} | {r.codec} | {r.setting} | {r.bpp:.4f} | {r.d_e:.4f} | {reference:.4f} | "
                      f"{'outside front' if np.isnan(reference) else 'yes' if r.d_e < reference else 'no'} |")
     with atomic_output(out_dir / "results.md") as tmp:
