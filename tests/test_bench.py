@@ -39,12 +39,17 @@ def test_bench_cli_rejects_missing_input(tmp_path):
     assert result.exit_code != 0
 
 
-def test_shipped_default_model_loads_and_is_listed():
-    assert "e1" in shipped_models()
-    model = load_model("e1")
-    assert model.config.subsampling_dist == 2.0 and len(model.weights_sha256) == 64
+def test_the_four_shipped_models_load_and_are_listed():
+    from mapsqueeze.model.checkpoint import SHIPPED_DIR
+
+    assert shipped_models() == ["e0", "e1", "e2", "e3"]
+    for name, r_s in zip(("e0", "e1", "e2", "e3"), (3.0, 2.0, 1.2, 1.0)):
+        model = load_model(name)
+        assert model.config.subsampling_dist == r_s and len(model.weights_sha256) == 64
+        assert (SHIPPED_DIR / name / "model.safetensors").stat().st_size < 2_000_000
+        assert "## Real submaps" in (SHIPPED_DIR / name / "MODEL_CARD.md").read_text()
     result = CliRunner().invoke(app, ["models"])
-    assert result.exit_code == 0 and "e1" in result.output
+    assert result.exit_code == 0 and all(name in result.output for name in ("e0", "e1", "e2", "e3"))
 
 
 def test_model_labels_are_unique_path_suffixes():
