@@ -176,7 +176,7 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
             m = evaluate(cloud.points, decoded, n_bytes=len(data), gt_normals=normals)
             rows.append(Row(cloud.name, v.codec, v.setting, len(cloud.points), len(data), m.bpp, m.d_e, m.d_perp,
                             m.iou, m.n_rec, t1 - t0, t2 - t1))
-        write_results(rows, out_dir)
+        write_results(rows, out_dir, per_cloud_plots=False)  # progress so far; plots per cloud at the end
     if not rows:
         raise MapsqueezeError("nothing to benchmark (no clouds or no available codec)")
     write_results(rows, out_dir)
@@ -219,7 +219,8 @@ def classical_d_e_at(summary: list[dict], bpp: float) -> float:
     return float(distortion_at([s["bpp"] for s in classical], [s["d_e"] for s in classical], bpp))
 
 
-def write_results(rows: list[Row], out_dir: Path) -> None:
+def write_results(rows: list[Row], out_dir: Path, per_cloud_plots: bool = True) -> None:
+    """results.csv, results.md and rd.png; per_cloud_plots adds rd_<cloud>.png for small benchmarks."""
     from mapsqueeze.io import atomic_output
 
     with atomic_output(out_dir / "results.csv") as tmp, open(tmp, "w", newline="") as f:
@@ -253,7 +254,7 @@ def write_results(rows: list[Row], out_dir: Path) -> None:
         Path(tmp).write_text("\n".join(lines) + "\n")
     plot_rd(summary, out_dir / "rd.png", f"mean over {len({r.cloud for r in rows})} clouds")
     clouds = sorted({r.cloud for r in rows})
-    if len(clouds) <= PER_CLOUD_PLOTS_UP_TO:
+    if per_cloud_plots and len(clouds) <= PER_CLOUD_PLOTS_UP_TO:
         for cloud in clouds:
             plot_rd(summarise([r for r in rows if r.cloud == cloud]), out_dir / f"rd_{Path(cloud).name}.png", cloud)
 
