@@ -395,3 +395,14 @@ def test_cli_round_trip_and_errors(tmp_path, map_points, model_dir, monkeypatch,
         code, captured = run_cli(monkeypatch, capsys, *args)
         lines = captured.err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), (args, captured.err)
+
+
+def test_streaming_refuses_an_overfull_tile_before_reading_it_back(model, tmp_path, monkeypatch):
+    from mapsqueeze.codec import compress as compress_module
+
+    monkeypatch.setattr(compress_module, "MAX_POINTS_PER_TILE", 1000)
+    source = tmp_path / "map.npy"
+    np.save(source, make_map())
+    monkeypatch.setattr(compress_module, "_encode_tile", lambda *a: pytest.fail("tile read back and encoded"))
+    with pytest.raises(InvalidPointCloudError, match="more than the 1,000"):
+        mapsqueeze.compress_file(source, tmp_path / "map.msq", model=model)

@@ -123,10 +123,18 @@ def compress_chunks(
         if sum(counts.values()) != n_points:
             raise InvalidPointCloudError("map: the input changed between the two reading passes")
         indices = sorted(counts)  # the order of tile_map: by (i, j, k)
+        for index in indices:  # refused before a tile that large is read back into memory
+            _check_tile_size(index, counts[index])
         tile_points = ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3))
                        for index in indices)
         return _compress_tiles(tile_points, len(indices), n_points, origin, model, precision, position_step_m,
                                feature_step_std, progress)
+
+
+def _check_tile_size(index: tuple[int, int, int], n_points: int) -> None:
+    if n_points > MAX_POINTS_PER_TILE:
+        raise InvalidPointCloudError(
+            f"tile {index} holds {n_points:,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may hold")
 
 
 def _spill_name(index: tuple[int, int, int]) -> str:
@@ -177,9 +185,7 @@ def _compress_tiles(
 
 def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_points: np.ndarray,
                  tile_size: np.ndarray, model) -> _EncodedTile:
-    if len(tile_points) > MAX_POINTS_PER_TILE:
-        raise InvalidPointCloudError(
-            f"tile {index} holds {len(tile_points):,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may hold")
+    _check_tile_size(index, len(tile_points))
     lo, hi = quantise_bounds(tile_points - tile_origin, tile_size)
     local = to_local(tile_points, frame_origin(tile_origin, lo, tile_size), tile_size)
     embedding = model.encode(local)
