@@ -406,3 +406,13 @@ def test_streaming_refuses_an_overfull_tile_before_reading_it_back(model, tmp_pa
     monkeypatch.setattr(compress_module, "_encode_tile", lambda *a: pytest.fail("tile read back and encoded"))
     with pytest.raises(InvalidPointCloudError, match="more than the 1,000"):
         mapsqueeze.compress_file(source, tmp_path / "map.msq", model=model)
+
+
+def test_decompress_file_refuses_an_unknown_output_format_before_decoding(compressed, tmp_path, monkeypatch):
+    from mapsqueeze.errors import PointCloudFormatError
+
+    (tmp_path / "map.msq").write_bytes(compressed)
+    monkeypatch.setattr(decompress_module, "decode_tile", lambda *a: pytest.fail("decoded before the check"))
+    with pytest.raises(PointCloudFormatError, match="unknown point-cloud extension"):
+        mapsqueeze.decompress_file(tmp_path / "map.msq", tmp_path / "out.xyz")
+    assert not (tmp_path / "out.xyz").exists()

@@ -20,7 +20,7 @@ from mapsqueeze.codec.container import TileCoding, open_container
 from mapsqueeze.codec.decompress import iter_decoded_tiles, tile_world_bounds
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
-from mapsqueeze.io import atomic_write_bytes, iter_points, write_point_chunks
+from mapsqueeze.io import atomic_write_bytes, format_name, iter_points, write_point_chunks
 from mapsqueeze.io.formats import DEFAULT_CHUNK_POINTS
 
 DEFAULT_MODEL = "e1"
@@ -127,6 +127,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
     directory; 24 bytes a point), which is then written out chunk by chunk: memory stays bounded by a tile and a
     chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`).
     """
+    format_name(output_path)  # an unknown output extension fails before any decoding
     with tempfile.TemporaryDirectory(prefix="mapsqueeze-decoded-", dir=spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
         with open(spill_path, "wb") as stream:

@@ -5,6 +5,7 @@ from mapsqueeze.io.atomic import atomic_output, atomic_write_bytes
 from mapsqueeze.io.formats import (
     LAS_SCALE_M,
     SUPPORTED_FORMATS,
+    format_name,
     iter_points,
     read_point_cloud,
     read_points,
@@ -27,6 +28,7 @@ __all__ = [
     "PointCloud",
     "atomic_output",
     "atomic_write_bytes",
+    "format_name",
     "iter_points",
     "read_point_cloud",
     "read_points",

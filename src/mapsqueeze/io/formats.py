@@ -323,7 +323,9 @@ _EXTENSIONS = {".pcd.bin": "pcd.bin", ".bin": "bin", ".ply": "ply", ".pcd": "pcd
                ".npy": "npy"}
 
 
-def _format_name(path: Path, format: str | None) -> str:
+def format_name(path: str | os.PathLike, format: str | None = None) -> str:
+    """The format a path is read or written in: `format` when given, else from the extension (or raise)."""
+    path = Path(path)
     if format is not None:
         name = format.lower().lstrip(".")
         if name not in _FORMATS:
@@ -341,7 +343,7 @@ def _format_name(path: Path, format: str | None) -> str:
 
 
 def _resolve_format(path: Path, format: str | None) -> _Format:
-    return _FORMATS[_format_name(path, format)]
+    return _FORMATS[format_name(path, format)]
 
 
 def read_point_cloud(path: str | os.PathLike, format: str | None = None) -> PointCloud:
@@ -467,7 +469,7 @@ def write_point_chunks(path: str | os.PathLike, chunks: Callable[[], Iterable[np
     the same layout and precision rules as `write_points`; ASCII PLY and PCD are assembled in memory.
     """
     path = Path(path)
-    name = _format_name(path, format)
+    name = format_name(path, format)
     stats = _chunk_stats(chunks, path)
     if name not in _CHUNK_WRITERS:
         write_points(path, np.concatenate(list(chunks())), format=name)
