@@ -72,20 +72,8 @@ def _float32_columns(points: np.ndarray, columns: list[np.ndarray], label: str) 
     return np.column_stack([points, *columns]).astype("<f4").tobytes()
 
 
-def _read_float32_columns(path: Path, names: tuple[str, ...], label: str) -> PointCloud:
-    row_bytes = 4 * (3 + len(names))
-    size = path.stat().st_size
-    if size % row_bytes:
-        raise PointCloudFormatError(
-            f"{path}: {label} size {size:,} bytes is not a multiple of {row_bytes} (float32 x 3+{len(names)}); "
-            "truncated or not this format"
-        )
-    table = np.fromfile(path, dtype="<f4").reshape(-1, 3 + len(names))
-    points = validate_points(table[:, :3], name=str(path))
-    return PointCloud(points, {name: table[:, 3 + column].copy() for column, name in enumerate(names)})
-
-
-def _chunks_float32_columns(path: Path, chunk_points: int, n_attributes: int, label: str) -> Iterator[np.ndarray]:
+def _float32_table(path: Path, n_attributes: int, label: str) -> np.ndarray:
+    """The file as a memory-mapped (N, 3 + n_attributes) float32 table, after checking its size."""
     row_bytes = 4 * (3 + n_attributes)
     size = path.stat().st_size
     if size % row_bytes:
@@ -95,7 +83,17 @@ def _chunks_float32_columns(path: Path, chunk_points: int, n_attributes: int, la
         )
     if size == 0:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
-    table = np.memmap(path, dtype="<f4", mode="r").reshape(-1, 3 + n_attributes)
+    return np.memmap(path, dtype="<f4", mode="r").reshape(-1, 3 + n_attributes)
+
+
+def _read_float32_columns(path: Path, names: tuple[str, ...], label: str) -> PointCloud:
+    table = _float32_table(path, len(names), label)
+    points = validate_points(table[:, :3], name=str(path))
+    return PointCloud(points, {name: np.array(table[:, 3 + column]) for column, name in enumerate(names)})
+
+
+def _chunks_float32_columns(path: Path, chunk_points: int, n_attributes: int, label: str) -> Iterator[np.ndarray]:
+    table = _float32_table(path, n_attributes, label)
     for start in range(0, len(table), chunk_points):
         yield validate_points(table[start:start + chunk_points, :3], name=str(path))
 
@@ -265,29 +263,28 @@ def _write_las(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]
     return tuple(attributes)
 
 
-def _read_npy(path: Path) -> PointCloud:
-    """Columns 0-2 are x, y, z; further columns become attributes `column3`, `column4`, ..."""
+def _npy_table(path: Path, mmap_mode: str | None) -> np.ndarray:
+    """A numeric N x (>= 3) .npy array (memory-mapped with mmap_mode="r"), or raise."""
     try:
-        table = np.load(path, allow_pickle=False)
+        table = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
     except (ValueError, EOFError) as exc:
         raise PointCloudFormatError(f"{path}: corrupt or non-numeric .npy file ({exc})") from None
     if not isinstance(table, np.ndarray) or table.dtype.kind not in "iuf":
         raise PointCloudFormatError(f"{path}: .npy holds {getattr(table, 'dtype', type(table))}, expected numbers")
     if table.ndim != 2 or table.shape[1] < 3:
         raise PointCloudFormatError(f"{path}: .npy array has shape {table.shape}, expected N x 3 or N x (>3)")
+    return table
+
+
+def _read_npy(path: Path) -> PointCloud:
+    """Columns 0-2 are x, y, z; further columns become attributes `column3`, `column4`, ..."""
+    table = _npy_table(path, None)
     points = validate_points(table[:, :3], name=str(path))
     return PointCloud(points, {f"column{column}": table[:, column].copy() for column in range(3, table.shape[1])})
 
 
 def _chunks_npy(path: Path, chunk_points: int) -> Iterator[np.ndarray]:
-    try:
-        table = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, EOFError) as exc:
-        raise PointCloudFormatError(f"{path}: corrupt or non-numeric .npy file ({exc})") from None
-    if table.dtype.kind not in "iuf":
-        raise PointCloudFormatError(f"{path}: .npy holds {table.dtype}, expected numbers")
-    if table.ndim != 2 or table.shape[1] < 3:
-        raise PointCloudFormatError(f"{path}: .npy array has shape {table.shape}, expected N x 3 or N x (>3)")
+    table = _npy_table(path, "r")
     if len(table) == 0:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
     for start in range(0, len(table), chunk_points):
