@@ -265,13 +265,17 @@ def per_cloud_comparison(rows: list[Row]) -> list[tuple[Row, float]]:
     The classical front is interpolated in log bpp (NaN when the cloud has no classical result)."""
     from mapsqueeze.baselines.rd import distortion_at
 
+    classical: dict[str, list[Row]] = {}
+    for r in rows:
+        if r.codec in CLASSICAL:
+            classical.setdefault(r.cloud, []).append(r)
     out = []
     for r in rows:
         if r.codec in CLASSICAL:
             continue
-        classical = [c for c in rows if c.cloud == r.cloud and c.codec in CLASSICAL]
-        reference = (float(distortion_at([c.bpp for c in classical], [c.d_e for c in classical], r.bpp))
-                     if classical else float("nan"))
+        front = classical.get(r.cloud, [])
+        reference = (float(distortion_at([c.bpp for c in front], [c.d_e for c in front], r.bpp))
+                     if front else float("nan"))
         out.append((r, reference))
     return out
 
