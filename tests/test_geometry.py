@@ -9,7 +9,7 @@ from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
 def brute_force_neighbors(source, queries, radius, cap):
     rows = []
     for q in queries:
-        found = np.flatnonzero(np.linalg.norm(source.astype(np.float64) - q, axis=1) <= radius)
+        found = np.flatnonzero(((source.astype(np.float64) - q.astype(np.float64)) ** 2).sum(axis=1) <= radius**2)
         m = len(found)
         rows.append(found if m <= cap else found[(m * np.arange(cap)) // cap])
     width = max(len(r) for r in rows)
@@ -19,19 +19,28 @@ def brute_force_neighbors(source, queries, radius, cap):
 def test_radius_neighbors_keep_an_evenly_spread_subset_whatever_the_thread_count():
     rng = np.random.default_rng(3)
     source = rng.random((3000, 3)).astype(np.float32)
-    queries = source[::5]
+    # queries on source points, between them, and outside the source's bounding box (empty neighbourhoods)
+    queries = np.r_[source[::5], rng.random((300, 3)).astype(np.float32) * 1.6 - 0.3]
     expected = brute_force_neighbors(source, queries, 0.12, 25)
-    assert (expected == len(source)).any() and (expected != len(source)).all(axis=1).any()  # both regimes occur
+    assert (expected == len(source)).all(axis=1).any() and (expected != len(source)).all(axis=1).any()
+    assert ((expected == len(source)).any(axis=1) & (expected != len(source)).any(axis=1)).any()
     threads = torch.get_num_threads()
     try:
         for n in (1, 2, 3):
             torch.set_num_threads(n)
-            got = radius_neighbors(source, queries, 0.12, 25)
-            # distances equal to the radius may round either way in float32: compare away from the boundary
-            assert got.shape == expected.shape
-            assert (got == expected).mean() > 0.999
+            np.testing.assert_array_equal(radius_neighbors(source, queries, 0.12, 25), expected)
     finally:
         torch.set_num_threads(threads)
+
+
+def test_radius_neighbors_on_flat_and_degenerate_clouds():
+    rng = np.random.default_rng(5)
+    plane = np.c_[rng.random((2000, 2)), np.zeros(2000)].astype(np.float32)  # zero extent in z
+    np.testing.assert_array_equal(radius_neighbors(plane, plane[:400], 0.05, 40),
+                                  brute_force_neighbors(plane, plane[:400], 0.05, 40))
+    one = np.zeros((1, 3), dtype=np.float32)
+    np.testing.assert_array_equal(radius_neighbors(one, one, 0.1, 8), [[0]])
+    assert radius_neighbors(one, one + 1, 0.1, 8).shape == (1, 0)
 
 
 def test_grid_subsample_keeps_the_point_nearest_each_voxel_centre():

@@ -9,9 +9,9 @@ from __future__ import annotations
 import math
 from concurrent.futures import ThreadPoolExecutor
 
+import numba
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 
 def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -45,35 +45,66 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     When a query has more than `max_neighbors` neighbours, an evenly spread subset is kept: with the neighbours in
     index order n_0 < ... < n_{m-1}, column j holds n_{floor(m * j / max_neighbors)} (the reference's rule).
     Missing entries hold len(source) (a "shadow" index). Returns (Q, K) int64, K = the largest count (<= cap).
-    The search runs on torch.get_num_threads() threads over contiguous query ranges; the result does not depend
-    on the thread count.
+    Distances are float64 of the float32 inputs, neighbours are those at distance <= radius. The search hashes
+    the source into cells of radius / CELLS_PER_RADIUS and runs a compiled kernel on torch.get_num_threads()
+    threads over contiguous query ranges; the result does not depend on the thread count.
     """
-    n_source = len(source)
-    source_tree = cKDTree(source)
+    source = np.ascontiguousarray(source, dtype=np.float32)
+    queries = np.ascontiguousarray(queries, dtype=np.float32)
+    n_source, n_queries = len(source), len(queries)
+    result = np.full((n_queries, max_neighbors), n_source, dtype=np.int64)
+    counts = np.zeros(n_queries, dtype=np.int64)
+    if n_source and n_queries and max_neighbors > 0:
+        cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS  # a hair over radius / 2: round-off cannot skip a cell
+        low = np.minimum(source.min(axis=0), queries.min(axis=0)).astype(np.float64)
+        high = np.maximum(source.max(axis=0), queries.max(axis=0)).astype(np.float64)
+        # a margin of CELLS_PER_RADIUS cells on each side keeps every scanned cell key inside the grid
+        dims = np.floor((high - low) / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
+        if math.prod(float(d) for d in dims) >= 2.0**62:
+            raise ValueError(f"radius_neighbors: extent {high - low} too large for radius {radius}")
+        keys = _cell_keys(source, low, cell, dims)
+        order = np.argsort(keys, kind="stable")
+        sorted_keys, sorted_points = keys[order], source[order].astype(np.float64)
+        ranges = np.array_split(np.arange(n_queries), max(1, min(torch.get_num_threads(), n_queries // 256)))
+        with ThreadPoolExecutor(len(ranges)) as pool:
+            list(pool.map(lambda r: _capped_neighbors_kernel(
+                sorted_keys, sorted_points, order, queries, int(r[0]), int(r[-1]) + 1, low, cell, dims,
+                radius * radius, max_neighbors, CELLS_PER_RADIUS, result, counts), [r for r in ranges if len(r)]))
+    return np.ascontiguousarray(result[:, :int(min(max_neighbors, counts.max(initial=0)))])
 
-    def sorted_pair_keys(query_range: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(query, source index) pairs within radius as one sorted int64 key each, and the count per query
-        (scipy and numpy release the GIL here, so query ranges run in parallel)."""
-        if len(query_range) == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        pairs = cKDTree(queries[query_range]).sparse_distance_matrix(source_tree, radius, output_type="ndarray")
-        rows = pairs["i"].astype(np.int64)
-        keys = np.sort((rows + query_range[0]) * n_source + pairs["j"])
-        return keys, np.bincount(rows, minlength=len(query_range))
 
-    ranges = np.array_split(np.arange(len(queries)), max(1, min(torch.get_num_threads(), len(queries) // 256)))
-    with ThreadPoolExecutor(len(ranges)) as pool:
-        parts = list(pool.map(sorted_pair_keys, ranges))
-    keys = np.concatenate([k for k, _ in parts])
-    counts = np.concatenate([c for _, c in parts])
-    width = int(min(max_neighbors, counts.max(initial=0)))
-    result = np.full((len(queries), width), len(source), dtype=np.int64)
-    if width == 0:
-        return result
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    kept = np.minimum(counts, max_neighbors)
-    rows = np.repeat(np.arange(len(queries)), kept)
-    cols = np.arange(kept.sum()) - np.repeat(np.cumsum(kept) - kept, kept)
-    step = np.maximum((np.repeat(counts, kept) * cols) // max_neighbors, cols)
-    result[rows, cols] = keys[np.repeat(starts, kept) + step] - rows * n_source
-    return result
+CELLS_PER_RADIUS = 2  # cell edge radius / 2: 5 x 5 columns of 5 cells scanned per query
+
+
+def _cell_keys(points: np.ndarray, low: np.ndarray, cell: float, dims: np.ndarray) -> np.ndarray:
+    """Row-major key (z fastest) of each point's cell, offset by the scan margin of CELLS_PER_RADIUS cells."""
+    c = np.floor((points - low) / cell).astype(np.int64) + CELLS_PER_RADIUS
+    return (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _capped_neighbors_kernel(sorted_keys, sorted_points, order, queries, first, stop, low, cell, dims, radius2,
+                             max_neighbors, cells_per_radius, result, counts):
+    """Fills result[first:stop] and counts[first:stop]: the capped in-radius neighbours of queries[first:stop]."""
+    found = np.empty(len(order), dtype=np.int64)
+    span = 2 * cells_per_radius + 1
+    for q in range(first, stop):
+        qx, qy, qz = np.float64(queries[q, 0]), np.float64(queries[q, 1]), np.float64(queries[q, 2])
+        cx = int(np.floor((qx - low[0]) / cell))
+        cy = int(np.floor((qy - low[1]) / cell))
+        cz = int(np.floor((qz - low[2]) / cell))
+        m = 0
+        for dx in range(span):
+            for dy in range(span):
+                column = ((cx + dx) * dims[1] + cy + dy) * dims[2] + cz  # z cells cz-margin..cz+margin in order
+                for s in range(np.searchsorted(sorted_keys, column), np.searchsorted(sorted_keys, column + span)):
+                    ddx = sorted_points[s, 0] - qx
+                    ddy = sorted_points[s, 1] - qy
+                    ddz = sorted_points[s, 2] - qz
+                    if ddx * ddx + ddy * ddy + ddz * ddz <= radius2:
+                        found[m] = order[s]
+                        m += 1
+        counts[q] = m
+        neighbors = np.sort(found[:m])
+        for j in range(min(m, max_neighbors)):
+            result[q, j] = neighbors[max((m * j) // max_neighbors, j)]
