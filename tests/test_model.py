@@ -7,7 +7,9 @@ import torch
 from mapsqueeze.model import (
     ModelConfig, build_model, density_law_factors, import_reference, load_model, resample_to_count, save_model,
 )
+from mapsqueeze.geometry.grid import radius_neighbors
 from mapsqueeze.model.density import fit_density_law
+from mapsqueeze.model.kpconv import KPConv
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss
 
 
@@ -52,6 +54,21 @@ def test_gradient_reaches_every_parameter():
     for name, p in net.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
         assert p.grad.abs().sum() > 0, f"no gradient reaches {name}"
+
+
+def test_kpconv_cpu_kernel_matches_the_torch_influences():
+    torch.manual_seed(0)
+    conv = KPConv(4, 8, 0.1)
+    source = torch.rand(2000, 3)
+    queries = source[::4]
+    neighbors = torch.from_numpy(radius_neighbors(source.numpy(), queries.numpy(), 0.15, 30))
+    assert (neighbors == len(source)).any() and neighbors.shape[1] == 30  # shadows and capped rows both occur
+    for first, stop in ((0, len(queries)), (7, 200)):
+        cpu = conv._cpu_influences(queries, source, neighbors, first, stop)
+        reference = conv._torch_influences(queries, source, neighbors, first, stop)
+        assert cpu.shape == reference.shape == (stop - first, 27, 30)
+        torch.testing.assert_close(cpu, reference, atol=1e-5, rtol=0)  # torch expands |a - b|^2
+        assert (cpu > 0).float().mean() > 0.05
 
 
 def test_chamfer_loss_matches_brute_force():
