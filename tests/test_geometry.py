@@ -7,9 +7,17 @@ from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
 
 
 def brute_force_neighbors(source, queries, radius, cap):
+    """The documented rule by brute force: in-radius neighbours in scan order of radius / 2 cells, evenly capped."""
+    source64, queries64 = source.astype(np.float64), queries.astype(np.float64)
+    low = np.minimum(source64.min(axis=0), queries64.min(axis=0))
+    cells = np.floor((source64 - low) / (radius / 2)).astype(np.int64)
+    scan_order = np.lexsort((np.arange(len(source)), cells[:, 2], cells[:, 1], cells[:, 0]))
+    rank = np.empty(len(source), dtype=np.int64)
+    rank[scan_order] = np.arange(len(source))
     rows = []
-    for q in queries:
-        found = np.flatnonzero(((source.astype(np.float64) - q.astype(np.float64)) ** 2).sum(axis=1) <= radius**2)
+    for q in queries64:
+        found = np.flatnonzero(((source64 - q) ** 2).sum(axis=1) <= radius**2)
+        found = found[np.argsort(rank[found])]
         m = len(found)
         rows.append(found if m <= cap else found[(m * np.arange(cap)) // cap])
     width = max(len(r) for r in rows)

@@ -42,12 +42,14 @@ def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int) -> np.ndarray:
     """Padded neighbour indices of each query within `radius`, capped at `max_neighbors`.
 
-    When a query has more than `max_neighbors` neighbours, an evenly spread subset is kept: with the neighbours in
-    index order n_0 < ... < n_{m-1}, column j holds n_{floor(m * j / max_neighbors)} (the reference's rule).
-    Missing entries hold len(source) (a "shadow" index). Returns (Q, K) int64, K = the largest count (<= cap).
-    Distances are float64 of the float32 inputs, neighbours are those at distance <= radius. The search hashes
-    the source into cells of radius / CELLS_PER_RADIUS and runs a compiled kernel on torch.get_num_threads()
-    threads over contiguous query ranges; the result does not depend on the thread count.
+    Neighbours are those at distance <= radius (float64 of the float32 inputs), listed in scan order: by search
+    cell (edge a hair over radius / 2, anchored at the lowest corner of source and queries; x slowest, z fastest),
+    then by index. When a query has m > max_neighbors of them, an evenly spread subset is kept: column j holds
+    the neighbour at position floor(m * j / max_neighbors) of that list (the reference's rule, applied to its
+    octree's order; a scan of cells is likewise spatial). Missing entries hold len(source) (a "shadow" index).
+    Returns (Q, K) int64, K = the largest count (<= cap). A compiled kernel scans the 5 x 5 x 5 cells around each
+    query on torch.get_num_threads() threads over contiguous query ranges; the result does not depend on the
+    thread count.
     """
     source = np.ascontiguousarray(source, dtype=np.float32)
     queries = np.ascontiguousarray(queries, dtype=np.float32)
@@ -55,25 +57,29 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     result = np.full((n_queries, max_neighbors), n_source, dtype=np.int64)
     counts = np.zeros(n_queries, dtype=np.int64)
     if n_source and n_queries and max_neighbors > 0:
-        cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS  # a hair over radius / 2: round-off cannot skip a cell
         low = np.minimum(source.min(axis=0), queries.min(axis=0)).astype(np.float64)
-        high = np.maximum(source.max(axis=0), queries.max(axis=0)).astype(np.float64)
-        # a margin of CELLS_PER_RADIUS cells on each side keeps every scanned cell key inside the grid
-        dims = np.floor((high - low) / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
-        if math.prod(float(d) for d in dims) >= 2.0**62:
-            raise ValueError(f"radius_neighbors: extent {high - low} too large for radius {radius}")
+        extent = np.maximum(source.max(axis=0), queries.max(axis=0)) - low
+        # cells of a hair over radius / 2 (round-off cannot skip one), coarser only if the cell table would
+        # exceed MAX_CELLS (a cloud far larger than the radius: more candidates per query, same result)
+        cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS
+        while np.prod(np.floor(extent / cell) + 2 * CELLS_PER_RADIUS + 1) > MAX_CELLS:
+            cell *= 2
+        # a margin of CELLS_PER_RADIUS cells on each side keeps every scanned cell inside the table
+        dims = np.floor(extent / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
         keys = _cell_keys(source, low, cell, dims)
         order = np.argsort(keys, kind="stable")
-        sorted_keys, sorted_points = keys[order], source[order].astype(np.float64)
+        cell_start = np.concatenate([[0], np.cumsum(np.bincount(keys, minlength=int(np.prod(dims))))])
+        sorted_points = source[order].astype(np.float64)
         ranges = np.array_split(np.arange(n_queries), max(1, min(torch.get_num_threads(), n_queries // 256)))
         with ThreadPoolExecutor(len(ranges)) as pool:
             list(pool.map(lambda r: _capped_neighbors_kernel(
-                sorted_keys, sorted_points, order, queries, int(r[0]), int(r[-1]) + 1, low, cell, dims,
+                cell_start, sorted_points, order, queries, int(r[0]), int(r[-1]) + 1, low, cell, dims,
                 radius * radius, max_neighbors, CELLS_PER_RADIUS, result, counts), [r for r in ranges if len(r)]))
     return np.ascontiguousarray(result[:, :int(min(max_neighbors, counts.max(initial=0)))])
 
 
 CELLS_PER_RADIUS = 2  # cell edge radius / 2: 5 x 5 columns of 5 cells scanned per query
+MAX_CELLS = 1 << 22  # cell table entries (int64): 32 MB at most
 
 
 def _cell_keys(points: np.ndarray, low: np.ndarray, cell: float, dims: np.ndarray) -> np.ndarray:
@@ -83,7 +89,7 @@ def _cell_keys(points: np.ndarray, low: np.ndarray, cell: float, dims: np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
-def _capped_neighbors_kernel(sorted_keys, sorted_points, order, queries, first, stop, low, cell, dims, radius2,
+def _capped_neighbors_kernel(cell_start, sorted_points, order, queries, first, stop, low, cell, dims, radius2,
                              max_neighbors, cells_per_radius, result, counts):
     """Fills result[first:stop] and counts[first:stop]: the capped in-radius neighbours of queries[first:stop]."""
     found = np.empty(len(order), dtype=np.int64)
@@ -97,7 +103,7 @@ def _capped_neighbors_kernel(sorted_keys, sorted_points, order, queries, first, 
         for dx in range(span):
             for dy in range(span):
                 column = ((cx + dx) * dims[1] + cy + dy) * dims[2] + cz  # z cells cz-margin..cz+margin in order
-                for s in range(np.searchsorted(sorted_keys, column), np.searchsorted(sorted_keys, column + span)):
+                for s in range(cell_start[column], cell_start[column + span]):
                     ddx = sorted_points[s, 0] - qx
                     ddy = sorted_points[s, 1] - qy
                     ddz = sorted_points[s, 2] - qz
@@ -105,6 +111,5 @@ def _capped_neighbors_kernel(sorted_keys, sorted_points, order, queries, first, 
                         found[m] = order[s]
                         m += 1
         counts[q] = m
-        neighbors = np.sort(found[:m])
         for j in range(min(m, max_neighbors)):
-            result[q, j] = neighbors[max((m * j) // max_neighbors, j)]
+            result[q, j] = found[max((m * j) // max_neighbors, j)]
