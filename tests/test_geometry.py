@@ -61,3 +61,24 @@ def test_grid_subsample_keeps_the_point_nearest_each_voxel_centre():
     for index in kept[:200]:
         same = (voxels == voxels[index]).all(axis=1)
         assert distance[index] <= distance[same].min() + 1e-6
+
+
+def test_run_over_ranges_covers_every_row_once_for_any_thread_count():
+    from mapsqueeze.geometry.threads import run_over_ranges
+
+    threads = torch.get_num_threads()
+    try:
+        for n_threads, n_rows, min_rows in ((1, 1000, 10), (3, 1000, 10), (4, 5, 1), (2, 0, 256), (3, 700, 256)):
+            torch.set_num_threads(n_threads)
+            hits = np.zeros(n_rows, dtype=np.int64)
+            ranges = []
+
+            def kernel(first, stop):
+                ranges.append((first, stop))
+                hits[first:stop] += 1
+
+            run_over_ranges(kernel, n_rows, min_rows)
+            assert (hits == 1).all()
+            assert len(ranges) == max(1, min(n_threads, n_rows // min_rows))
+    finally:
+        torch.set_num_threads(threads)

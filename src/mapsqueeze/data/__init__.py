@@ -5,42 +5,20 @@ map into grid tiles for the codec. The simulator (`data.simulator`) and the trai
 build on these.
 """
 
-from mapsqueeze.data.mapping import (
-    Submap,
-    SubmapDataset,
-    SubmapRecord,
-    aggregate_map,
-    build_submaps,
-    crop_submap,
-    preprocess_scan,
-    read_dataset,
-    submap_bounds,
-    submap_centers,
-    transform,
-    write_dataset,
-)
-from mapsqueeze.data.sequences import DataError, ScanSequence, estimate_poses, open_sequences
-from mapsqueeze.data.tiling import TILE_SIZE_M, Tile, tile_map, to_local
+import importlib
 
-__all__ = [
-    "TILE_SIZE_M",
-    "DataError",
-    "ScanSequence",
-    "Submap",
-    "SubmapDataset",
-    "SubmapRecord",
-    "Tile",
-    "aggregate_map",
-    "build_submaps",
-    "crop_submap",
-    "estimate_poses",
-    "open_sequences",
-    "preprocess_scan",
-    "read_dataset",
-    "submap_bounds",
-    "submap_centers",
-    "tile_map",
-    "to_local",
-    "transform",
-    "write_dataset",
-]
+_EXPORTS = {
+    "mapping": ("Submap", "SubmapDataset", "SubmapRecord", "aggregate_map", "build_submaps", "crop_submap",
+                "preprocess_scan", "read_dataset", "submap_bounds", "submap_centers", "transform", "write_dataset"),
+    "sequences": ("DataError", "ScanSequence", "estimate_poses", "open_sequences"),
+    "tiling": ("TILE_SIZE_M", "Tile", "tile_map", "to_local"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_MODULE_OF)
+
+
+def __getattr__(name: str):
+    """Lazy re-exports: the codec imports `data.tiling` without the map builder's scipy and pose estimation."""
+    if name in _MODULE_OF:
+        return getattr(importlib.import_module(f"mapsqueeze.data.{_MODULE_OF[name]}"), name)
+    raise AttributeError(f"module 'mapsqueeze.data' has no attribute {name!r}")

@@ -7,11 +7,12 @@ coordinates are normalised (metres / map size), voxel keys and tie-breaking dist
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
 import torch
+
+from mapsqueeze.geometry.threads import run_over_ranges
 
 
 def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -70,11 +71,9 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
         order = np.argsort(keys, kind="stable")
         cell_start = np.concatenate([[0], np.cumsum(np.bincount(keys, minlength=int(np.prod(dims))))])
         sorted_points = source[order].astype(np.float64)
-        ranges = np.array_split(np.arange(n_queries), max(1, min(torch.get_num_threads(), n_queries // 256)))
-        with ThreadPoolExecutor(len(ranges)) as pool:
-            list(pool.map(lambda r: _capped_neighbors_kernel(
-                cell_start, sorted_points, order, queries, int(r[0]), int(r[-1]) + 1, low, cell, dims,
-                radius * radius, max_neighbors, CELLS_PER_RADIUS, result, counts), [r for r in ranges if len(r)]))
+        run_over_ranges(lambda first, stop: _capped_neighbors_kernel(
+            cell_start, sorted_points, order, queries, first, stop, low, cell, dims, radius * radius, max_neighbors,
+            CELLS_PER_RADIUS, result, counts), n_queries)
     return np.ascontiguousarray(result[:, :int(min(max_neighbors, counts.max(initial=0)))])
 
 

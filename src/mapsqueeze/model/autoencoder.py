@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 from torch import nn
 
 from mapsqueeze.model.config import ModelConfig
@@ -134,8 +134,8 @@ def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
         return cloud[keep]
     # Densify: midpoints towards the k nearest neighbours, as many rounds of k as needed.
     k = int(np.ceil(n_points / len(cloud)))
-    _, nn_idx = cKDTree(cloud).query(cloud, k=min(k + 1, len(cloud)))
-    nn_idx = np.atleast_2d(nn_idx)[:, 1:] if len(cloud) > 1 else np.zeros((1, 0), dtype=np.int64)
+    _, nn_idx = KDTree(np.ascontiguousarray(cloud)).query(np.ascontiguousarray(cloud), k=min(k + 1, len(cloud)))
+    nn_idx = np.atleast_2d(nn_idx.astype(np.int64))[:, 1:] if len(cloud) > 1 else np.zeros((1, 0), dtype=np.int64)
     if nn_idx.shape[1] == 0:
         return np.repeat(cloud, int(np.ceil(n_points / len(cloud))), axis=0)[:n_points]
     midpoints = 0.5 * (cloud[:, None, :] + cloud[nn_idx]).reshape(-1, 3)

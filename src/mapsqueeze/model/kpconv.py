@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -11,6 +10,7 @@ import torch
 from torch import nn
 
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
+from mapsqueeze.geometry.threads import run_over_ranges
 
 
 def grid_kernel_points(radius: float, num_kernel_points: int = 27) -> np.ndarray:
@@ -59,9 +59,7 @@ class KPConv(nn.Module):
         kernel point x_m: (stop - first, M, K) float32, 0 for shadow neighbours. Threads over query ranges."""
         out = torch.empty(stop - first, len(self.kernel_points), neighbors.shape[1], dtype=torch.float32)
         args = (queries.numpy(), source.numpy(), neighbors.numpy(), self.kernel_points.numpy(), np.float32(self.sigma), first)
-        bounds = np.linspace(first, stop, min(torch.get_num_threads(), max(1, (stop - first) // 64)) + 1).astype(int)
-        with ThreadPoolExecutor(len(bounds) - 1) as pool:
-            list(pool.map(lambda b: _influence_kernel(*args, b[0], b[1], out.numpy()), zip(bounds[:-1], bounds[1:])))
+        run_over_ranges(lambda a, b: _influence_kernel(*args, first + a, first + b, out.numpy()), stop - first, 64)
         return out
 
     def _torch_influences(self, queries, source, neighbors, first: int, stop: int) -> torch.Tensor:
