@@ -52,7 +52,7 @@ class KPConv(nn.Module):
         weighted = torch.cat([torch.matmul(influences(*geometry, s, min(len(queries), s + chunk)),
                                            padded_features[neighbors[s:s + chunk]])  # (Q, M, C)
                               for s in range(0, max(len(queries), 1), chunk)])
-        return torch.matmul(weighted.permute(1, 0, 2), self.weights).sum(dim=0)
+        return weighted.reshape(len(weighted), -1) @ self.weights.reshape(-1, self.weights.shape[2])  # sum over m, c
 
     def _cpu_influences(self, queries, source, neighbors, first: int, stop: int) -> torch.Tensor:
         """Influence max(0, 1 - |y - x - x_m| / sigma) of each neighbour y of queries x in [first, stop) on each
