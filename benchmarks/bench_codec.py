@@ -3,7 +3,7 @@
 Run: `.venv/bin/python benchmarks/bench_codec.py --model DIR [--copies 3] [--precision q f16]`
 (figures go to BENCHMARKS.md, "## Codec"). The map is copies of the real KITTI submap
 (../shared/data/real/submaps/kitti_hdl64_6scans.ply), mirrored four ways, one per tile of a copies x copies grid
-at UTM coordinates (optionally shifted against the tile grid), written as PLY. Compression and decompression each
+at UTM coordinates (optionally cropped so that the copies straddle the tile grid), written as PLY. Compression and decompression each
 run in a fresh process (`mapsqueeze.compress_file` / `decompress_file`, what the CLI calls) pinned to 2 cores, so
 their peak resident memory (ru_maxrss, including the ~0.4 GB of torch and the model) is measured separately.
 D_e compares the decoded map with the input (mapsqueeze.metrics.d_euclidean).
@@ -26,10 +26,12 @@ UTM_OFFSET = np.array([500_000.0, 4_000_000.0, 50.0])  # on the 40 x 40 x 15 m t
 CORES = 2
 
 
-def build_map(copies: int, shift_m: tuple[float, float, float]) -> np.ndarray:
-    """copies^2 mirrored copies of the KITTI submap, one per 40 m tile of a UTM-anchored grid, then shifted.
+def build_map(copies: int, crop_m: tuple[float, float]) -> np.ndarray:
+    """copies^2 mirrored copies of the KITTI submap at a 40 m pitch at UTM coordinates, minus the first crop_m
+    metres in x and y.
 
-    With shift 0 each copy fills one tile like the paper's submaps; a shift makes copies straddle tile borders.
+    The codec fits its tile grid to the map (as few 40 m tiles as the extent needs, centred on it): uncropped,
+    each copy fills one tile like the paper's submaps; a crop moves the grid so that every copy straddles tiles.
     """
     from mapsqueeze.io import read_points
 
@@ -44,29 +46,33 @@ def build_map(copies: int, shift_m: tuple[float, float, float]) -> np.ndarray:
                 if flip:
                     mirrored[:, axis] = extent[axis] - mirrored[:, axis]
             parts.append(mirrored + [40.0 * i, 40.0 * j, 0.0])
-    return np.concatenate(parts) + UTM_OFFSET + shift_m
+    points = np.concatenate(parts)
+    points = points[(points[:, 0] >= crop_m[0]) & (points[:, 1] >= crop_m[1])]
+    return points + UTM_OFFSET
 
 
 BORDER_BAND_M = 1.0
 
 
 def border_and_interior_d_e(gt: np.ndarray, rec: np.ndarray, tile_size=(40.0, 40.0, 15.0)) -> tuple[float, float]:
-    """D_e (m) restricted to points within BORDER_BAND_M of a tile face, and to the other points.
+    """D_e (m) restricted to points within BORDER_BAND_M of a face between two tiles, and to the other points.
 
     Each term of the symmetric mean is assigned by its own point (ground truth or decoded) and the tile grid that
-    compression used (mapsqueeze.data.tiling.grid_origin): a gap or overlap at tile borders shows up as a larger
-    border D_e than interior D_e.
+    compression fitted to the map (mapsqueeze.data.tiling.fit_grid): a gap or overlap at tile borders shows up as
+    a larger border D_e than interior D_e.
     """
     from scipy.spatial import cKDTree
 
-    from mapsqueeze.data.tiling import grid_origin
+    from mapsqueeze.data.tiling import fit_grid
 
     size = np.asarray(tile_size)
-    origin = grid_origin(gt, size)
+    origin, shape = fit_grid(gt.min(axis=0), gt.max(axis=0), size)
 
     def near_border(points):
-        inside = np.mod(points - origin, size)
-        return (np.minimum(inside, size - inside) < BORDER_BAND_M).any(axis=1)
+        steps = (points - origin) / size  # faces between tiles at steps 1 .. shape - 1
+        nearest_face = np.clip(np.round(steps), 1, np.maximum(shape - 1, 1))
+        distance = np.where(shape > 1, np.abs(steps - nearest_face) * size, np.inf)
+        return (distance < BORDER_BAND_M).any(axis=1)
 
     gt_terms = cKDTree(rec).query(gt, workers=-1)[0]
     rec_terms = cKDTree(gt).query(rec, workers=-1)[0]
@@ -107,8 +113,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", required=True, help="model name or directory (e.g. an imported e1)")
     parser.add_argument("--copies", type=int, default=3, help="map of copies x copies KITTI submaps")
-    parser.add_argument("--shift", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("DX", "DY", "DZ"),
-                        help="shift of the map against the tile grid (metres)")
+    parser.add_argument("--crop", type=float, nargs=2, default=(0.0, 0.0), metavar=("DX", "DY"),
+                        help="drop the map's first DX, DY metres so that copies straddle the tile grid")
     parser.add_argument("--precision", nargs="+", default=["q", "f16"])
     parser.add_argument("--stage", choices=["compress", "decompress"], help=argparse.SUPPRESS)
     parser.add_argument("--input", help=argparse.SUPPRESS)
@@ -121,8 +127,8 @@ def main() -> None:
     from mapsqueeze.io import read_points, write_points
     from mapsqueeze.metrics import d_euclidean
 
-    points = build_map(args.copies, args.shift)
-    print(f"map: {args.copies}x{args.copies} KITTI submap copies shifted by {args.shift} m, {len(points):,} points, "
+    points = build_map(args.copies, args.crop)
+    print(f"map: {args.copies}x{args.copies} KITTI submap copies cropped by {args.crop} m, {len(points):,} points, "
           f"model {args.model}, {CORES} cores, load average {os.getloadavg()[0]:.1f}")
     print("| precision | tiles (raw) | bytes | bpp | compress s | compress pts/s | compress peak MB "
           f"| decompress s | decompress pts/s | decompress peak MB | D_e (m) "

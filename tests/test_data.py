@@ -21,6 +21,7 @@ from mapsqueeze.data import (
     write_dataset,
 )
 from mapsqueeze.data.mapping import preprocess_scan, submap_bounds
+from mapsqueeze.data.tiling import TILE_SIZE_M, fit_grid
 from mapsqueeze.data.sequences import read_poses
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.geometry.voxel import VoxelAccumulator, pack_indices, voxel_filter, voxel_indices
@@ -303,7 +304,8 @@ def test_tiles_partition_the_map_with_exact_local_coordinates():
     rng = np.random.default_rng(5)
     points = UTM_OFFSET_M + rng.uniform([0, 0, 0], [130, 95, 40], (300_000, 3))
     points[:10, 0] = 500040.0  # exactly on a tile face: belongs to the upper tile
-    tiles = tile_map(points)
+    world_grid = np.floor(points.min(axis=0) / TILE_SIZE_M) * TILE_SIZE_M
+    tiles = tile_map(points, origin=world_grid)
     (face_tile,) = [tile for tile in tiles if 0 in tile.point_indices]
     assert face_tile.origin[0] == 500040.0 and face_tile.local_points(points)[0, 0] == 0.0
     indices = np.concatenate([tile.point_indices for tile in tiles])
@@ -318,6 +320,26 @@ def test_tiles_partition_the_map_with_exact_local_coordinates():
         assert np.abs(reconstructed - points[tile.point_indices]).max() < 1e-3
         members = points[tile.point_indices]
         assert np.all(members >= tile.bounds[0]) and np.all(members < tile.bounds[1])
+
+
+def test_the_default_grid_is_fitted_to_the_map():
+    rng = np.random.default_rng(6)
+    # a 40 m submap around (0, 0, 0) whose points reach every face of its box: one tile (upper faces included)
+    submap = rng.uniform([-20, -20, -7.5], [20, 20, 7.5], (5000, 3))
+    submap[:3] = [[-20, -20, -7.5], [20, 20, 7.5], [20, -20, 7.5]]
+    (tile,) = tile_map(submap)
+    np.testing.assert_array_equal(tile.bounds, [[-20, -20, -7.5], [20, 20, 7.5]])
+    local = tile.local_points(submap)
+    assert local.min() >= 0 and np.all(local.max(axis=0) < tile.size) and len(tile.point_indices) == 5000
+    # 130 x 95 x 40 m at UTM: 4 x 3 x 3 tiles centred on the map (5, 12.5 and 2.5 m of slack per side)
+    points = UTM_OFFSET_M + rng.uniform([0, 0, 0], [130, 95, 40], (20_000, 3))
+    origin, shape = fit_grid(points.min(axis=0), points.max(axis=0), TILE_SIZE_M)
+    assert shape.tolist() == [4, 3, 3]
+    np.testing.assert_allclose(origin, points.min(axis=0) - (shape * TILE_SIZE_M - np.ptp(points, axis=0)) / 2)
+    tiles = tile_map(points)
+    assert {tile.index for tile in tiles} <= {(i, j, k) for i in range(4) for j in range(3) for k in range(3)}
+    assert sum(len(tile.point_indices) for tile in tiles) == len(points)
+    np.testing.assert_allclose(tiles[0].origin, origin)
 
 
 def test_tiles_with_points_on_faces_of_an_inexact_grid():

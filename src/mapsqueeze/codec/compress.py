@@ -29,7 +29,7 @@ from mapsqueeze.codec.embedding import (
     quantise,
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
-from mapsqueeze.data.tiling import grid_origin, tile_map, to_local
+from mapsqueeze.data.tiling import fit_grid, tile_map, to_local
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import validate_points
 
@@ -82,8 +82,8 @@ def compress_map(
     """
     points = validate_points(points, name="map")
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
-    origin = grid_origin(points, tile_size)
-    tiles = tile_map(points, tile_size, origin=origin)
+    origin, shape = fit_grid(points.min(axis=0), points.max(axis=0), tile_size)
+    tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     tile_points = ((tile.index, points[tile.point_indices]) for tile in tiles)
     return _compress_tiles(tile_points, len(tiles), len(points), origin, model, precision, position_step_m,
                            feature_step_std, progress)
@@ -106,17 +106,17 @@ def compress_chunks(
     directory (in spill_dir, default the system's; 24 bytes a point), then encodes the tiles one by one.
     """
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
-    lowest, n_points = np.full(3, np.inf), 0
+    lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     for chunk in chunks():
-        lowest = np.minimum(lowest, chunk.min(axis=0))
+        lowest, highest = np.minimum(lowest, chunk.min(axis=0)), np.maximum(highest, chunk.max(axis=0))
         n_points += len(chunk)
     if n_points == 0:
         raise InvalidPointCloudError("map: the point cloud is empty")
-    origin = np.floor(lowest / tile_size) * tile_size  # = grid_origin of the whole map
+    origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
     with tempfile.TemporaryDirectory(prefix="mapsqueeze-tiles-", dir=spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
         for chunk in chunks():
-            for tile in tile_map(chunk, tile_size, origin=origin):
+            for tile in tile_map(chunk, tile_size, origin=origin, shape=shape):
                 with open(os.path.join(spill, _spill_name(tile.index)), "ab") as stream:
                     stream.write(chunk[tile.point_indices].tobytes())
                 counts[tile.index] = counts.get(tile.index, 0) + len(tile.point_indices)

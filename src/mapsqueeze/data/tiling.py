@@ -1,7 +1,9 @@
 """Grid tiling of a large map into boxes (default 40 x 40 x 15 m, the paper's submap size) for the codec.
 
 Tiles lie on a grid anchored at a float64 origin: tile (i, j, k) covers [origin + (i, j, k) * size,
-origin + (i + 1, j + 1, k + 1) * size) (half-open, so each point lands in exactly one tile). Coordinates inside a
+origin + (i + 1, j + 1, k + 1) * size) (half-open, so each point lands in exactly one tile; on a fitted grid the
+last tile of an axis also takes the points on its upper face). The default grid is fitted to the map: as few
+tiles per axis as its extent needs, centred on it, so a 40 x 40 m submap is one tile wherever it lies. Coordinates inside a
 tile are float32 offsets from the tile's float64 origin, computed in float64 before the cast, so maps in UTM
 or other large coordinates keep sub-millimetre precision.
 """
@@ -50,25 +52,40 @@ class Tile:
         return to_local(points[self.point_indices], self.origin, self.size)
 
 
-def grid_origin(points: np.ndarray, tile_size: np.ndarray) -> np.ndarray:
-    """The default grid anchor: floor(min / tile) * tile per axis, i.e. the world-aligned grid's first cell."""
-    return np.floor(points.min(axis=0) / tile_size) * tile_size
+def fit_grid(lowest: np.ndarray, highest: np.ndarray, tile_size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The default grid of a map with bounding box [lowest, highest] (metres): n = max(1, ceil(extent / size))
+    tiles per axis, centred on the box. Returns (origin, n): float64 lower corner, int64 tiles per axis."""
+    lowest, highest = np.asarray(lowest, dtype=np.float64), np.asarray(highest, dtype=np.float64)
+    size = np.asarray(tile_size, dtype=np.float64)
+    extent = highest - lowest
+    shape = np.maximum(1, np.ceil(extent / size)).astype(np.int64)
+    return lowest - (shape * size - extent) / 2, shape
 
 
 def tile_map(
-    points: np.ndarray, tile_size: float | Iterable[float] = TILE_SIZE_M, origin: Iterable[float] | None = None
+    points: np.ndarray,
+    tile_size: float | Iterable[float] = TILE_SIZE_M,
+    origin: Iterable[float] | None = None,
+    shape: Iterable[int] | None = None,
 ) -> list[Tile]:
     """Split (N, 3) float64 map points into non-empty tiles, ordered by index (i, then j, then k).
 
-    `origin` anchors the grid (default `grid_origin`: multiples of the tile size); indices may be negative for
-    points below it. One stable argsort on packed tile keys: O(N log N), fine for tens of millions of points.
+    Default grid: `fit_grid` of the points. A given `origin` anchors the grid (indices may be negative for points
+    below it); a given `shape` (tiles per axis of a fitted grid holding every point) puts points on the grid's
+    upper faces into its last tiles. One stable argsort on packed tile keys: O(N log N), fine for tens of
+    millions of points.
     """
     points = validate_points(points, name="map")
     size = as_lengths(tile_size, "tile size")
-    anchor = grid_origin(points, size) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    if origin is None:
+        anchor, shape = fit_grid(points.min(axis=0), points.max(axis=0), size)
+    else:
+        anchor = np.asarray(origin, dtype=np.float64).reshape(3)
     # A point on a face whose grid line float64 cannot represent exactly may fall a hair (~1e-10 m) outside its
     # tile's box; `to_local` clamps it.
     indices = np.floor((points - anchor) / size).astype(np.int64)
+    if shape is not None:
+        np.clip(indices, 0, np.asarray(shape, dtype=np.int64) - 1, out=indices)
     keys = pack_indices(indices)
     order = np.argsort(keys, kind="stable")
     starts = np.flatnonzero(np.r_[True, keys[order][1:] != keys[order][:-1]])
