@@ -58,7 +58,8 @@ class KPConv(nn.Module):
         """Influence max(0, 1 - |y - x - x_m| / sigma) of each neighbour y of queries x in [first, stop) on each
         kernel point x_m: (stop - first, M, K) float32, 0 for shadow neighbours. Threads over query ranges."""
         out = torch.empty(stop - first, len(self.kernel_points), neighbors.shape[1], dtype=torch.float32)
-        args = (queries.numpy(), source.numpy(), neighbors.numpy(), self.kernel_points.numpy(), np.float32(self.sigma), first)
+        arrays = (np.ascontiguousarray(t.numpy()) for t in (queries, source, neighbors, self.kernel_points))
+        args = (*arrays, np.float32(self.sigma), first)
         run_over_ranges(lambda a, b: _influence_kernel(*args, first + a, first + b, out.numpy()), stop - first, 64)
         return out
 
