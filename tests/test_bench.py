@@ -71,3 +71,23 @@ def test_benchmark_resumes_and_extends_an_earlier_run(tmp_path):
     assert {r.codec for r in second[len(first):]} == {"mapsqueeze"}
     again = run_benchmark([tmp_path / "patch.ply"], ["octree"], tmp_path / "out", log=lambda m: None, fresh=True)
     assert len(again) == len(first) and [r.encode_s for r in again] != [r.encode_s for r in first]
+
+
+def test_per_cloud_comparison_against_any_front():
+    from mapsqueeze.bench import Row, per_cloud_comparison
+
+    def row(cloud, codec, setting, bpp, d_e):
+        return Row(cloud, codec, setting, 1000, int(bpp * 125), bpp, d_e, d_e / 2, 0.5, 1000, 0.1, 0.1)
+
+    rows = [row("a", "octree", "1", 0.1, 0.4), row("a", "octree", "2", 0.4, 0.2), row("a", "draco", "x", 0.2, 0.5),
+            row("a", "depoco-ref", "e0,f16", 0.1, 0.25), row("a", "depoco-ref", "e1,f16", 1.0, 0.1),
+            row("a", "mapsqueeze", "e0,q", 0.2, 0.3), row("a", "mapsqueeze", "e1,q", 2.0, 0.05),
+            row("b", "mapsqueeze", "e0,q", 0.2, 0.3)]
+    classical = {(r.cloud, r.codec, r.setting): ref for r, ref in per_cloud_comparison(rows)}
+    assert set(classical) == {("a", "depoco-ref", "e0,f16"), ("a", "depoco-ref", "e1,f16"),
+                              ("a", "mapsqueeze", "e0,q"), ("a", "mapsqueeze", "e1,q"), ("b", "mapsqueeze", "e0,q")}
+    assert np.isclose(classical[("a", "mapsqueeze", "e0,q")], 0.3)  # draco's (0.2, 0.5) is off the front
+    assert np.isnan(classical[("a", "mapsqueeze", "e1,q")]) and np.isnan(classical[("b", "mapsqueeze", "e0,q")])
+    against_reference = per_cloud_comparison(rows, ("depoco-ref",), ("mapsqueeze",))
+    assert [(r.cloud, r.setting) for r, _ in against_reference] == [("a", "e0,q"), ("a", "e1,q"), ("b", "e0,q")]
+    assert np.isclose(against_reference[0][1], 0.25 - 0.15 * np.log(2) / np.log(10))

@@ -250,6 +250,14 @@ def write_results(rows: list[Row], out_dir: Path, per_cloud_plots: bool = True) 
     for r, reference in comparison:
         lines.append(f"| {r.cloud} | {r.codec} | {r.setting} | {r.bpp:.4f} | {r.d_e:.4f} | {reference:.4f} | "
                      f"{'outside front' if np.isnan(reference) else 'yes' if r.d_e < reference else 'no'} |")
+    against_reference = per_cloud_comparison(rows, ("depoco-ref",), ("mapsqueeze",))
+    if any(not np.isnan(ref) for _, ref in against_reference):
+        lines += ["", "Per cloud: mapsqueeze against the front of depoco-ref (the reference checkpoints, all its "
+                  "precisions) on the same cloud, interpolated in log bpp.", "",
+                  "| cloud | setting | bpp | D_e (m) | depoco-ref D_e at this bpp (m) | D_e change |", "|---" * 6 + "|"]
+        lines += [f"| {r.cloud} | {r.setting} | {r.bpp:.4f} | {r.d_e:.4f} | "
+                  + ("outside its bpp range | |" if np.isnan(ref) else f"{ref:.4f} | {r.d_e / ref - 1:+.1%} |")
+                  for r, ref in against_reference]
     with atomic_output(out_dir / "results.md") as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
     plot_rd(summary, out_dir / "rd.png", f"mean over {len({r.cloud for r in rows})} clouds")
@@ -259,21 +267,23 @@ def write_results(rows: list[Row], out_dir: Path, per_cloud_plots: bool = True) 
             plot_rd(summarise([r for r in rows if r.cloud == cloud]), out_dir / f"rd_{Path(cloud).name}.png", cloud)
 
 
-def per_cloud_comparison(rows: list[Row]) -> list[tuple[Row, float]]:
-    """(learned row, D_e of the best classical codec on the same cloud at the same bpp) for every learned row.
+def per_cloud_comparison(rows: list[Row], front_codecs: tuple[str, ...] = CLASSICAL,
+                         codecs: tuple[str, ...] | None = None) -> list[tuple[Row, float]]:
+    """(row, D_e of the Pareto front of front_codecs' rows on the same cloud at the same bpp) for every row of
+    `codecs` (default: every codec not in front_codecs).
 
-    The classical front is interpolated in log bpp (NaN when the cloud has no classical result)."""
+    The front is interpolated in log bpp (NaN when the cloud has no row of front_codecs)."""
     from mapsqueeze.baselines.rd import distortion_at
 
-    classical: dict[str, list[Row]] = {}
+    fronts: dict[str, list[Row]] = {}
     for r in rows:
-        if r.codec in CLASSICAL:
-            classical.setdefault(r.cloud, []).append(r)
+        if r.codec in front_codecs:
+            fronts.setdefault(r.cloud, []).append(r)
     out = []
     for r in rows:
-        if r.codec in CLASSICAL:
+        if r.codec in front_codecs or (codecs is not None and r.codec not in codecs):
             continue
-        front = classical.get(r.cloud, [])
+        front = fronts.get(r.cloud, [])
         reference = (float(distortion_at([c.bpp for c in front], [c.d_e for c in front], r.bpp))
                      if front else float("nan"))
         out.append((r, reference))
