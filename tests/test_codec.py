@@ -217,6 +217,14 @@ def test_round_trip_of_a_multi_tile_map(map_points, compressed, model):
     assert info.bits_per_point < 2.0
 
 
+def test_a_map_no_larger_than_a_tile_is_one_tile_wherever_it_lies(model):
+    rng = np.random.default_rng(3)
+    patch = np.column_stack([rng.uniform(0, 8, 3000), rng.uniform(0, 8, 3000), rng.normal(2.0, 0.05, 3000)])
+    for offset in ([0.0, 0.0, 0.0], [-4.0, -4.0, -2.0], [3.3, -7.1, 1.9]):  # across world multiples of the tile
+        data = mapsqueeze.compress(patch + UTM + offset, model=model)
+        assert mapsqueeze.info(data).n_tiles == 1
+
+
 @pytest.mark.parametrize("precision", ["f32", "f16"])
 def test_float_precisions_round_trip(map_points, model, precision):
     data = mapsqueeze.compress(map_points, model=model, precision=precision)
