@@ -91,3 +91,9 @@ def test_per_cloud_comparison_against_any_front():
     against_reference = per_cloud_comparison(rows, ("depoco-ref",), ("mapsqueeze",))
     assert [(r.cloud, r.setting) for r, _ in against_reference] == [("a", "e0,q"), ("a", "e1,q"), ("b", "e0,q")]
     assert np.isclose(against_reference[0][1], 0.25 - 0.15 * np.log(2) / np.log(10))
+    from mapsqueeze.bench import reference_comparison
+
+    table = reference_comparison(rows)
+    assert table[-3].startswith("| a | e0,q | 0.2000 | 0.3000 | 0.2048 | +46.5% | 0.2048 | +46.5% |")
+    assert "outside its bpp range" in table[-2] and "outside its bpp range" in table[-1]
+    assert reference_comparison([r for r in rows if r.codec != "depoco-ref"]) == []
