@@ -204,7 +204,7 @@ def test_round_trip_of_a_multi_tile_map(map_points, compressed, model):
     reader, stream = open_container(compressed)
     stream.close()
     assert len(reader.entries) >= 6
-    assert any(e.coding is TileCoding.raw for e in reader.entries)  # the 4-point post (at most 4 points an embedding point: raw)
+    assert any(e.coding is TileCoding.raw for e in reader.entries)  # the 4-point post: raw (<= 4 points a centre)
     assert any(e.coding is TileCoding.network for e in reader.entries)
     decoded = mapsqueeze.decompress(compressed, model=model)
     assert decoded.dtype == np.float64 and np.isfinite(decoded).all()

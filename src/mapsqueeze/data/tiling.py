@@ -3,9 +3,9 @@
 Tiles lie on a grid anchored at a float64 origin: tile (i, j, k) covers [origin + (i, j, k) * size,
 origin + (i + 1, j + 1, k + 1) * size) (half-open, so each point lands in exactly one tile; on a fitted grid the
 last tile of an axis also takes the points on its upper face). The default grid is fitted to the map: as few
-tiles per axis as its extent needs, centred on it, so a 40 x 40 m submap is one tile wherever it lies. Coordinates inside a
-tile are float32 offsets from the tile's float64 origin, computed in float64 before the cast, so maps in UTM
-or other large coordinates keep sub-millimetre precision.
+tiles per axis as its extent needs, centred on it, so a 40 x 40 m submap is one tile wherever it lies.
+Coordinates inside a tile are float32 offsets from the tile's float64 origin, computed in float64 before the
+cast, so maps in UTM or other large coordinates keep sub-millimetre precision.
 """
 
 from collections.abc import Iterable

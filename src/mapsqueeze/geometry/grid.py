@@ -44,13 +44,13 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     """Padded neighbour indices of each query within `radius`, capped at `max_neighbors`.
 
     Neighbours are those at distance <= radius (float64 of the float32 inputs), listed in scan order: by search
-    cell (edge a hair over radius / 2, anchored at the lowest corner of source and queries; x slowest, z fastest),
-    then by index. When a query has m > max_neighbors of them, an evenly spread subset is kept: column j holds
-    the neighbour at position floor(m * j / max_neighbors) of that list (the reference's rule, applied to its
-    octree's order; a scan of cells is likewise spatial). Missing entries hold len(source) (a "shadow" index).
-    Returns (Q, K) int64, K = the largest count (<= cap). A compiled kernel scans the 5 x 5 x 5 cells around each
-    query on torch.get_num_threads() threads over contiguous query ranges; the result does not depend on the
-    thread count.
+    cell (edge a hair over radius / 2, doubled until the cell table fits MAX_CELLS; anchored at the lowest corner
+    of source and queries; x slowest, z fastest), then by index. When a query has m > max_neighbors of them, an
+    evenly spread subset is kept: column j holds the neighbour at position floor(m * j / max_neighbors) of that
+    list (the reference's rule, applied to its octree's order; a scan of cells is likewise spatial). Missing
+    entries hold len(source) (a "shadow" index). Returns (Q, K) int64, K = the largest count (<= cap). A compiled
+    kernel scans the 5 x 5 x 5 cells around each query on torch.get_num_threads() threads over contiguous query
+    ranges; the result does not depend on the thread count.
     """
     source = np.ascontiguousarray(source, dtype=np.float32)
     queries = np.ascontiguousarray(queries, dtype=np.float32)
@@ -61,7 +61,7 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
         low = np.minimum(source.min(axis=0), queries.min(axis=0)).astype(np.float64)
         extent = np.maximum(source.max(axis=0), queries.max(axis=0)) - low
         # cells of a hair over radius / 2 (round-off cannot skip one), coarser only if the cell table would
-        # exceed MAX_CELLS (a cloud far larger than the radius: more candidates per query, same result)
+        # exceed MAX_CELLS (a cloud hundreds of radii across: more candidates per query, a coarser scan order)
         cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS
         while np.prod(np.floor(extent / cell) + 2 * CELLS_PER_RADIUS + 1) > MAX_CELLS:
             cell *= 2
