@@ -5,8 +5,8 @@ Run: `.venv/bin/python benchmarks/bench_codec.py --model DIR [--copies 3] [--pre
 (../shared/data/real/submaps/kitti_hdl64_6scans.ply), mirrored four ways, one per tile of a copies x copies grid
 at UTM coordinates (optionally cropped so that the copies straddle the tile grid), written as PLY. Compression
 and decompression each run in a fresh process (`mapsqueeze.compress_file` / `decompress_file`, what the CLI
-calls) pinned to 2 cores, so their peak resident memory (ru_maxrss, including the ~0.4 GB of torch and the model) is measured separately.
-D_e compares the decoded map with the input (mapsqueeze.metrics.d_euclidean).
+calls) pinned to 2 cores, so their peak resident memory (ru_maxrss, including the ~0.4 GB of torch and the
+model) is measured separately. D_e compares the decoded map with the input (mapsqueeze.metrics.d_euclidean).
 """
 
 import argparse
