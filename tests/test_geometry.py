@@ -1,9 +1,11 @@
-"""Grid subsampling and capped radius neighbours against brute force."""
+"""Grid subsampling and capped radius neighbours against brute force; Morton codes and the spread subset."""
 
 import numpy as np
+import pytest
 import torch
 
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
+from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes, spread_subset
 
 
 def brute_force_neighbors(source, queries, radius, cap):
@@ -82,3 +84,49 @@ def test_run_over_ranges_covers_every_row_once_for_any_thread_count():
             assert len(ranges) == max(1, min(n_threads, n_rows // min_rows))
     finally:
         torch.set_num_threads(threads)
+
+
+def _morton_by_bits(cells: np.ndarray, bits: int) -> np.ndarray:
+    """The definition, one bit at a time: bit b of axis a goes to bit 3 b + a."""
+    codes = np.zeros(len(cells), dtype=np.int64)
+    for bit in range(bits):
+        for axis in range(3):
+            codes |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return codes
+
+
+@pytest.mark.parametrize("bits", [1, 7, 16, MAX_BITS])
+def test_morton_codes_interleave_bits_and_invert(bits):
+    cells = np.random.default_rng(bits).integers(0, 1 << bits, (5000, 3))
+    cells[0] = (1 << bits) - 1  # every bit set: the top code bit is 3 bits - 1, still a non-negative int64
+    codes = morton_codes(cells, bits)
+    assert codes.dtype == np.int64 and codes.min() >= 0
+    np.testing.assert_array_equal(codes, _morton_by_bits(cells, bits))
+    np.testing.assert_array_equal(morton_cells(codes), cells)
+
+
+def test_morton_codes_refuse_cells_outside_the_grid():
+    with pytest.raises(ValueError):
+        morton_codes(np.array([[0, 0, 8]]), 3)
+    with pytest.raises(ValueError):
+        morton_codes(np.array([[0, -1, 0]]), 3)
+    with pytest.raises(ValueError):
+        morton_codes(np.zeros((1, 3), dtype=np.int64), MAX_BITS + 1)
+
+
+def test_spread_subset_leaves_no_holes_and_follows_density():
+    rng = np.random.default_rng(0)
+    square = np.c_[rng.random((40000, 2)) * 10, np.zeros(40000)]  # 10 m x 10 m, 400 points per m^2
+    keep = spread_subset(square, 400)
+    assert len(keep) == 400 and len(np.unique(keep)) == 400 and np.all(np.diff(keep) > 0)
+    np.testing.assert_array_equal(keep, spread_subset(square, 400))  # deterministic
+    # every 1 m cell keeps some of its ~4 expected points, with less than half the spread of a random subset's
+    cell_of = (square[:, 0] // 1 * 10 + square[:, 1] // 1).astype(int)
+    per_cell = np.bincount(cell_of[keep], minlength=100)
+    random_cells = np.bincount(cell_of[rng.choice(len(square), 400, replace=False)], minlength=100)
+    assert per_cell.min() >= 1 and per_cell.var() < 0.5 * random_cells.var()
+    # a cloud twice as dense on its left half keeps twice as many points there
+    dense = np.concatenate([square, square[square[:, 0] < 5]])
+    left = (dense[spread_subset(dense, 600), 0] < 5).sum()
+    assert 380 <= left <= 420
+    assert len(spread_subset(square[:10], 20)) == 10 and len(spread_subset(square[:1], 1)) == 1

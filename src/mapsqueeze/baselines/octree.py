@@ -18,6 +18,7 @@ import numpy as np
 
 from mapsqueeze.baselines.base import BaselineCodec, BaselineError, Setting, setting_number
 from mapsqueeze.errors import ContainerError
+from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes
 from mapsqueeze.geometry.voxel import voxel_indices
 from mapsqueeze.io import MAX_ABS_COORDINATE_M, validate_points
 
@@ -25,31 +26,13 @@ _MAGIC = b"MSOT"
 _VERSION = 1
 _HEADER = struct.Struct("<4sBBBII3dd")
 _RAW, _ARITHMETIC = 0, 1
-MAX_DEPTH = 21
+MAX_DEPTH = MAX_BITS
 """Morton codes hold 3 x 21 bits in an int64: at most 2,097,152 leaves per axis."""
 MAX_LEAVES = 1 << 27
 """Largest leaf count a decoder accepts (about 1 GiB of Morton codes), so a forged header cannot exhaust memory."""
 
 LEAF_SIZES_M = (0.1, 0.2, 0.4, 0.8, 1.6)
 """Leaf cell edges (metres) of the benchmark sweep."""
-
-
-def _morton_codes(cells: np.ndarray, depth: int) -> np.ndarray:
-    """Interleave (N, 3) integer cell indices < 2**depth into int64 Morton codes (bit 3b + axis)."""
-    codes = np.zeros(len(cells), dtype=np.int64)
-    for bit in range(depth):
-        for axis in range(3):
-            codes |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return codes
-
-
-def _morton_cells(codes: np.ndarray, depth: int) -> np.ndarray:
-    """Inverse of `_morton_codes`: (N, 3) int64 cell indices."""
-    cells = np.zeros((len(codes), 3), dtype=np.int64)
-    for bit in range(depth):
-        for axis in range(3):
-            cells[:, axis] |= ((codes >> (3 * bit + axis)) & 1) << bit
-    return cells
 
 
 def _occupancy_levels(leaf_codes: np.ndarray, depth: int) -> list[np.ndarray]:
@@ -106,7 +89,7 @@ class OctreeCodec(BaselineCodec):
                 f"(more than {MAX_DEPTH} octree levels)"
             )
         cells = np.clip(voxel_indices(points, leaf, origin), 0, (1 << depth) - 1)
-        leaf_codes = np.unique(_morton_codes(cells, depth))
+        leaf_codes = np.unique(morton_codes(cells, depth))
         levels = _occupancy_levels(leaf_codes, depth)
         if self.entropy_coded:
             payload, coding = _arithmetic_encode(levels), _ARITHMETIC
@@ -130,7 +113,7 @@ class OctreeCodec(BaselineCodec):
         if len(codes) != leaf_count:
             raise ContainerError(f"octree: {len(codes)} leaves decoded, header says {leaf_count}")
         leaf = root_size / (1 << depth)
-        return origin + (_morton_cells(codes, depth) + 0.5) * leaf
+        return origin + (morton_cells(codes) + 0.5) * leaf
 
 
 class OctreeAcCodec(OctreeCodec):

@@ -20,43 +20,25 @@ from mapsqueeze.codec.entropy import (
     encode_gaps,
     fit_gap_buckets,
 )
+from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes
 
 RAW_STEP_M = 0.01
 """Quantisation step of raw tiles (metres): at most 5 mm error per axis."""
-
-_MAX_AXIS_BITS = 21  # 3 x 21 bits fit a uint64 Morton code
 
 
 def axis_bits(tile_size: np.ndarray, step_m: float) -> int:
     """Bits per axis of the quantised coordinates of a tile (the same for all three axes)."""
     bits = int(bit_length(np.ceil(np.asarray(tile_size) / step_m).astype(np.int64)).max())
-    if bits > _MAX_AXIS_BITS:
+    if bits > MAX_BITS:
         raise ValueError(f"raw coding of a {tile_size} m tile at {step_m} m needs {bits} bits per axis")
     return bits
-
-
-def _interleave(cells: np.ndarray, bits: int) -> np.ndarray:
-    codes = np.zeros(len(cells), dtype=np.uint64)
-    values = cells.astype(np.uint64)
-    for bit in range(bits):
-        for axis in range(3):
-            codes |= ((values[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return codes
-
-
-def _deinterleave(codes: np.ndarray, bits: int) -> np.ndarray:
-    cells = np.zeros((len(codes), 3), dtype=np.uint64)
-    for bit in range(bits):
-        for axis in range(3):
-            cells[:, axis] |= ((codes >> np.uint64(3 * bit + axis)) & np.uint64(1)) << np.uint64(bit)
-    return cells.astype(np.int64)
 
 
 def encode_raw_tile(points_local: np.ndarray, tile_size: np.ndarray, step_m: float = RAW_STEP_M) -> bytes:
     """Points (N, 3) metres relative to the tile frame, in [0, tile_size) -> raw payload."""
     bits = axis_bits(tile_size, step_m)
     cells = np.clip(np.round(np.asarray(points_local, dtype=np.float64) / step_m), 0, 2**bits - 1)
-    codes = np.sort(_interleave(cells.astype(np.int64), bits)).astype(np.int64)
+    codes = np.sort(morton_codes(cells.astype(np.int64), bits))
     gaps = np.diff(codes, prepend=0)
     buckets = fit_gap_buckets(gaps)
     writer = ByteWriter()
@@ -80,4 +62,4 @@ def decode_raw_tile(payload: bytes, tile_size: np.ndarray, max_points: int, what
     symbols.finish()
     if count and (codes.max() >= 2 ** (3 * bits)):
         raise reader.fail("raw point outside the tile")
-    return (_deinterleave(codes.astype(np.uint64), bits) * step_m).astype(np.float32)
+    return (morton_cells(codes) * step_m).astype(np.float32)

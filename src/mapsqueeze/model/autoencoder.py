@@ -9,6 +9,7 @@ import torch
 from pykdtree.kdtree import KDTree
 from torch import nn
 
+from mapsqueeze.geometry.morton import spread_subset
 from mapsqueeze.model.config import ModelConfig
 from mapsqueeze.model.deconv import AdaptiveDeconv
 from mapsqueeze.model.kpconv import EncoderBlock
@@ -111,7 +112,7 @@ class CompressionModel:
         """Embedding -> dense cloud (K,3) float32 tile-local metres.
 
         n_points=None gives the native count (M x prod(K_i)). A smaller count keeps an evenly spread deterministic
-        subset; a larger one adds midpoints between each output point and its nearest neighbours (arbitrary density).
+        subset (`resample_to_count`); a larger one adds midpoints between each output point and its nearest neighbours (arbitrary density).
         """
         scale = np.float32(self.config.map_size)
         p = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32) / scale).to(self.device)
@@ -124,14 +125,17 @@ class CompressionModel:
 
 
 def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
-    """Thin or densify a decoded cloud to exactly n_points (deterministic)."""
+    """Thin or densify a decoded cloud to exactly n_points (deterministic).
+
+    Thinning keeps an evenly spread subset that follows the decoder's own density (`spread_subset`: D_e 2-5 %
+    lower than a uniformly random subset on the real submaps, BENCHMARKS.md).
+    """
     if n_points is None or n_points == len(cloud):
         return cloud
     if n_points <= 0:
         return cloud[:0]
     if n_points < len(cloud):
-        keep = np.sort(np.random.default_rng(len(cloud)).choice(len(cloud), n_points, replace=False))
-        return cloud[keep]
+        return cloud[spread_subset(cloud, n_points)]
     # Densify: midpoints towards the k nearest neighbours, as many rounds of k as needed.
     k = int(np.ceil(n_points / len(cloud)))
     _, nn_idx = KDTree(np.ascontiguousarray(cloud)).query(np.ascontiguousarray(cloud), k=min(k + 1, len(cloud)))
