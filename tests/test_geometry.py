@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
 from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes, spread_subset
 
@@ -130,3 +131,12 @@ def test_spread_subset_leaves_no_holes_and_follows_density():
     left = (dense[spread_subset(dense, 600), 0] < 5).sum()
     assert 380 <= left <= 420
     assert len(spread_subset(square[:10], 20)) == 10 and len(spread_subset(square[:1], 1)) == 1
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_bounding_box_matches_the_axis_reduction(dtype):
+    points = (np.random.default_rng(3).normal(size=(1001, 3)) * [5, 50, 500]).astype(dtype)
+    low, high = bounding_box(points[::2])  # a strided view, as the codec passes
+    np.testing.assert_array_equal(low, points[::2].min(axis=0))
+    np.testing.assert_array_equal(high, points[::2].max(axis=0))
+    assert low.dtype == dtype

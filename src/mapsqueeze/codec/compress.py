@@ -30,6 +30,7 @@ from mapsqueeze.codec.embedding import (
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
 from mapsqueeze.data.tiling import fit_grid, tile_map, to_local
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import validate_points
 
@@ -82,7 +83,7 @@ def compress_map(
     """
     points = validate_points(points, name="map")
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
-    origin, shape = fit_grid(points.min(axis=0), points.max(axis=0), tile_size)
+    origin, shape = fit_grid(*bounding_box(points), tile_size)
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     tile_points = ((tile.index, points[tile.point_indices]) for tile in tiles)
     return _compress_tiles(tile_points, len(tiles), len(points), origin, model, precision, position_step_m,
@@ -108,7 +109,8 @@ def compress_chunks(
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     for chunk in chunks():
-        lowest, highest = np.minimum(lowest, chunk.min(axis=0)), np.maximum(highest, chunk.max(axis=0))
+        chunk_low, chunk_high = bounding_box(chunk)
+        lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
         n_points += len(chunk)
     if n_points == 0:
         raise InvalidPointCloudError("map: the point cloud is empty")

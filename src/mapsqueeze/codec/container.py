@@ -20,6 +20,7 @@ import numpy as np
 from mapsqueeze.codec.embedding import CellGrid, Precision, QuantModel
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.errors import ContainerError
+from mapsqueeze.geometry.bounds import bounding_box
 
 MAGIC = b"MSQZ"
 VERSION = 1
@@ -150,8 +151,9 @@ def frame_origin(tile_origin: np.ndarray, bounds_lo: tuple[int, int, int], tile_
 def quantise_bounds(points_local: np.ndarray, tile_size: np.ndarray) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """Tight box of tile-local points as uint16 steps of tile_size / BOUNDS_STEPS, rounded outwards."""
     unit = _bounds_unit(tile_size)
-    lo = np.clip(np.floor(points_local.min(axis=0) / unit), 0, BOUNDS_STEPS).astype(int)
-    hi = np.clip(np.ceil(points_local.max(axis=0) / unit), 0, BOUNDS_STEPS).astype(int)
+    low, high = bounding_box(points_local)
+    lo = np.clip(np.floor(low / unit), 0, BOUNDS_STEPS).astype(int)
+    hi = np.clip(np.ceil(high / unit), 0, BOUNDS_STEPS).astype(int)
     return tuple(int(v) for v in lo), tuple(int(v) for v in hi)
 
 

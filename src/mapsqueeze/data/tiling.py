@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.voxel import as_lengths, pack_indices
 from mapsqueeze.io import validate_points
 
@@ -78,7 +79,7 @@ def tile_map(
     points = validate_points(points, name="map")
     size = as_lengths(tile_size, "tile size")
     if origin is None:
-        anchor, shape = fit_grid(points.min(axis=0), points.max(axis=0), size)
+        anchor, shape = fit_grid(*bounding_box(points), size)
     else:
         anchor = np.asarray(origin, dtype=np.float64).reshape(3)
     # A point on a face whose grid line float64 cannot represent exactly may fall a hair (~1e-10 m) outside its

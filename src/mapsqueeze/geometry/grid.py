@@ -12,6 +12,7 @@ import numba
 import numpy as np
 import torch
 
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.threads import run_over_ranges
 
 
@@ -58,8 +59,9 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     result = np.full((n_queries, max_neighbors), n_source, dtype=np.int64)
     counts = np.zeros(n_queries, dtype=np.int64)
     if n_source and n_queries and max_neighbors > 0:
-        low = np.minimum(source.min(axis=0), queries.min(axis=0)).astype(np.float64)
-        extent = np.maximum(source.max(axis=0), queries.max(axis=0)) - low
+        (source_low, source_high), (query_low, query_high) = bounding_box(source), bounding_box(queries)
+        low = np.minimum(source_low, query_low).astype(np.float64)
+        extent = np.maximum(source_high, query_high) - low
         # cells of a hair over radius / 2 (round-off cannot skip one), coarser only if the cell table would
         # exceed MAX_CELLS (a cloud hundreds of radii across: more candidates per query, a coarser scan order)
         cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mapsqueeze.geometry.bounds import bounding_box
+
 MAX_BITS = 21
 """Largest bits per axis: 3 x 21 = 63 bits, a non-negative int64."""
 
@@ -57,13 +59,14 @@ SPREAD_BITS = 16
 
 def spread_subset(points: np.ndarray, count: int) -> np.ndarray:
     """Ascending indices of `count` of the (N, 3) `points` (count <= N) spread evenly over them: every (N / count)-th
-    point along the Morton order of a fine grid over their bounding box. Deterministic; unlike a uniformly random
-    subset it leaves no clumps or holes, and unlike one point per voxel it keeps the cloud's density profile."""
+    point along the Morton order of a fine grid over their bounding box (ties in index order). Deterministic; unlike
+    a uniformly random subset it leaves no clumps or holes, and unlike one point per voxel it keeps the cloud's
+    density profile."""
     points = np.asarray(points, dtype=np.float64)
     if count >= len(points):
         return np.arange(len(points))
-    low = points.min(axis=0)
-    extent = float((points.max(axis=0) - low).max())
+    low, high = bounding_box(points)
+    extent = float((high - low).max())
     scale = ((1 << SPREAD_BITS) - 1) / extent if extent > 0 else 0.0
     cells = np.floor((points - low) * scale).astype(np.int64)
     order = np.argsort(morton_codes(cells, SPREAD_BITS), kind="stable")

@@ -28,6 +28,7 @@ import numpy as np
 import plyfile
 
 from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.io.atomic import atomic_output
 from mapsqueeze.io.pcd import read_pcd, write_pcd
 from mapsqueeze.io.pointcloud import (
@@ -403,7 +404,8 @@ def _chunk_stats(chunks: Callable[[], Iterable[np.ndarray]], path: Path) -> _Chu
     for chunk in chunks():
         chunk = validate_points(chunk, name=f"points for {path}")
         n += len(chunk)
-        lowest, highest = np.minimum(lowest, chunk.min(axis=0)), np.maximum(highest, chunk.max(axis=0))
+        chunk_low, chunk_high = bounding_box(chunk)
+        lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
         error = max(error, float32_error_m(chunk))
     if n == 0:
         raise InvalidPointCloudError(f"points for {path}: the point cloud is empty")
