@@ -1,13 +1,16 @@
-"""Where D_e comes from: its two directions, and what a per-embedding point count would buy.
+"""Where D_e comes from: its two directions, how the decoded points are thinned, what a point count would buy.
 
 D_e (eq. 9) is half the mean distance from each ground-truth point to the reconstruction (coverage: parts of the
 map the decoder misses or thins out) plus half the mean from each reconstructed point to the ground truth
-(precision: points grown where there is no surface). The codec thins the decoder's native output to the tile's
-count with an evenly spread subset that keeps the decoder's density (`spread_subset`; "random subset" is the
-uniformly random thinning used until session 5). Real scans are far denser near the sensor. The "oracle"
-rows give each embedding point as many points as the input had nearest to it (exact counts, and counts rounded
-to powers of 2 ** 0.5 or 2 with the entropy such counts would cost): the gain an explicit count in the bitstream
-could bring, before its rate. Embeddings are f32 (no quantisation), so only the point allocation differs.
+(precision: points grown where there is no surface). Rows per cloud, each a way to bring the decoder's native
+output down to the input's point count:
+- "random subset": uniformly random (the codec until session 5);
+- "spread subset (codec)": every (K / n)-th point along a Morton order, which keeps the decoder's density;
+- "voxel subset": one point per voxel, the edge bisected to keep the count (the most even subset, density-blind);
+- "oracle, ...": each embedding point decoded with as many points as the input had nearest to it (exact, or rounded
+  to powers of 2 ** 0.5 or 2, with the order-0 entropy those counts would cost): what a count per embedding point
+  in the bitstream could bring, before its rate.
+Embeddings are f32 (no quantisation), so only the point allocation differs between rows.
 
     .venv/bin/python benchmarks/error_split.py --model e1 ../shared/data/real/submaps/*.ply
 """
@@ -37,6 +40,18 @@ def allocate(weights: np.ndarray, n_points: int) -> np.ndarray:
     return counts
 
 
+def voxel_subset(points: np.ndarray, count: int) -> np.ndarray:
+    """`count` points, one per voxel (the first of each), at the voxel edge (bisected) keeping at least that many."""
+    small, large = 1e-3, float(np.ptp(points, axis=0).max())  # metres: at least count voxels / one voxel
+    for _ in range(30):
+        edge = (small * large) ** 0.5
+        n_voxels = len(np.unique(np.floor(points / edge).astype(np.int64), axis=0))
+        small, large = (edge, large) if n_voxels >= count else (small, edge)
+    _, first = np.unique(np.floor(points / small).astype(np.int64), axis=0, return_index=True)
+    first = np.sort(first)
+    return points[first[(np.arange(count) * len(first)) // count]]
+
+
 def entropy_bytes(symbols: np.ndarray) -> float:
     """Static (order-0) entropy of the symbols in bytes, histogram not counted."""
     p = np.bincount(symbols) / len(symbols)
@@ -47,6 +62,7 @@ def entropy_bytes(symbols: np.ndarray) -> float:
 ALLOCATIONS = {  # name -> None (whole tile), or (weights from the true counts, quantised symbol per embedding point)
     "random subset": None,
     "spread subset (codec)": None,
+    "voxel subset": None,
     "oracle, exact counts": (lambda c: c.astype(float), None),
     "oracle, counts to 2^0.5": (lambda c: 2.0 ** (np.round(np.log2(c + 1) * 2) / 2),
                                 lambda c: np.round(np.log2(c + 1) * 2).astype(np.int64)),
@@ -71,6 +87,8 @@ def split(points: np.ndarray, model) -> dict[str, tuple[float, float, float]]:
         for name, rule in ALLOCATIONS.items():
             if name == "random subset" and len(local) < len(native):
                 rec = native[np.random.default_rng(0).choice(len(native), len(local), replace=False)]
+            elif name == "voxel subset" and len(local) < len(native):
+                rec = voxel_subset(native, len(local))
             elif rule is None:
                 rec = resample_to_count(native, len(local))
             else:
