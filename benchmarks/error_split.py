@@ -49,6 +49,7 @@ def voxel_subset(points: np.ndarray, count: int) -> np.ndarray:
         small, large = (edge, large) if n_voxels >= count else (small, edge)
     _, first = np.unique(np.floor(points / small).astype(np.int64), axis=0, return_index=True)
     first = np.sort(first)
+    assert len(first) >= count, "fewer distinct 1 mm voxels than points to keep"
     return points[first[(np.arange(count) * len(first)) // count]]
 
 

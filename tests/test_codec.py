@@ -424,3 +424,12 @@ def test_decompress_file_refuses_an_unknown_output_format_before_decoding(compre
     with pytest.raises(PointCloudFormatError, match="unknown point-cloud extension"):
         mapsqueeze.decompress_file(tmp_path / "map.msq", tmp_path / "out.xyz")
     assert not (tmp_path / "out.xyz").exists()
+
+
+def test_raw_tile_payload_bytes_are_pinned():
+    """The raw payload format must not drift (digest of the session-4 encoder, before the shared Morton module)."""
+    import hashlib
+
+    points = (np.random.default_rng(5).random((3000, 3)) * [40, 40, 15]).astype(np.float32)
+    payload = encode_raw_tile(points, np.array([40.0, 40.0, 15.0]))
+    assert hashlib.sha256(payload).hexdigest() == "13a0c695d538bab2986c8cdcf74f4b206e1569b71857788b8f9fa52df52c5760"

@@ -7,6 +7,7 @@ import torch
 from mapsqueeze.model import (
     ModelConfig, build_model, density_law_factors, import_reference, load_model, resample_to_count, save_model,
 )
+from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.grid import radius_neighbors
 from mapsqueeze.model.density import fit_density_law
 from mapsqueeze.model.kpconv import KPConv
@@ -132,6 +133,27 @@ def test_resample_to_count_densifies_between_neighbours():
     assert len(dense) == 19
     # new points are midpoints on the line, within its extent
     assert np.all(dense[:, 1:] == 0) and dense[:, 0].min() >= 0 and dense[:, 0].max() <= 9
+
+
+def test_resample_to_count_thins_to_an_even_deterministic_subset():
+    line = np.c_[np.arange(1000.0), np.zeros(1000), np.zeros(1000)]
+    thin = resample_to_count(line, 100)
+    assert len(thin) == 100 and len(np.unique(thin[:, 0])) == 100
+    np.testing.assert_array_equal(thin, resample_to_count(line, 100))
+    assert np.all(np.diff(thin[:, 0]) > 0)  # kept in input order
+    assert np.diff(thin[:, 0]).max() <= 20  # no gap wider than twice the even spacing of 10
+    assert len(resample_to_count(line, 0)) == 0
+
+
+def test_decode_refuses_non_finite_output(tmp_path):
+    network = build_model(ModelConfig.for_rate("e1"))
+    with torch.no_grad():
+        network.decoder.refine.bias.fill_(float("nan"))
+    save_model(network, tmp_path / "m")
+    model = load_model(tmp_path / "m")
+    emb = model.encode(street_patch())
+    with pytest.raises(ModelError, match="non-finite"):
+        model.decode(emb.points, emb.features)
 
 
 def test_density_law_fit_recovers_planar_dimension():

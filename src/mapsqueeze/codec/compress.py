@@ -30,8 +30,8 @@ from mapsqueeze.codec.embedding import (
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
 from mapsqueeze.data.tiling import fit_grid, tile_map, to_local
-from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.io import validate_points
 
 RAW_POINTS_PER_EMBEDDING = 4

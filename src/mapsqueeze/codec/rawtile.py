@@ -60,6 +60,6 @@ def decode_raw_tile(payload: bytes, tile_size: np.ndarray, max_points: int, what
     symbols = SymbolReader(reader.raw(reader.remaining), what)
     codes = np.cumsum(decode_gaps(symbols, count, buckets))
     symbols.finish()
-    if count and (codes.max() >= 2 ** (3 * bits)):
+    if count and (codes.min() < 0 or codes.max() >= 2 ** (3 * bits)):
         raise reader.fail("raw point outside the tile")
     return (morton_cells(codes) * step_m).astype(np.float32)

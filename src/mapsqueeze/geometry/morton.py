@@ -58,10 +58,10 @@ SPREAD_BITS = 16
 
 
 def spread_subset(points: np.ndarray, count: int) -> np.ndarray:
-    """Ascending indices of `count` of the (N, 3) `points` (count <= N) spread evenly over them: every (N / count)-th
+    """Ascending indices of `count` of the (N, 3) finite `points` spread evenly over them: every (N / count)-th
     point along the Morton order of a fine grid over their bounding box (ties in index order). Deterministic; unlike
     a uniformly random subset it leaves no clumps or holes, and unlike one point per voxel it keeps the cloud's
-    density profile."""
+    density profile. count >= N gives every index, count <= 0 none."""
     points = np.asarray(points, dtype=np.float64)
     if count >= len(points):
         return np.arange(len(points))

@@ -9,6 +9,7 @@ import torch
 from pykdtree.kdtree import KDTree
 from torch import nn
 
+from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.morton import spread_subset
 from mapsqueeze.model.config import ModelConfig
 from mapsqueeze.model.deconv import AdaptiveDeconv
@@ -112,7 +113,8 @@ class CompressionModel:
         """Embedding -> dense cloud (K,3) float32 tile-local metres.
 
         n_points=None gives the native count (M x prod(K_i)). A smaller count keeps an evenly spread deterministic
-        subset (`resample_to_count`); a larger one adds midpoints between each output point and its nearest neighbours (arbitrary density).
+        subset (`resample_to_count`); a larger one adds midpoints between each output point and its nearest
+        neighbours (arbitrary density). Raises ModelError if the network outputs a non-finite coordinate.
         """
         scale = np.float32(self.config.map_size)
         p = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32) / scale).to(self.device)
@@ -121,13 +123,15 @@ class CompressionModel:
             return np.zeros((0, 3), dtype=np.float32)
         output, _ = self.network.decoder(p, f)
         cloud = output.cpu().numpy() * scale
+        if not np.isfinite(cloud).all():
+            raise ModelError(f"model {self.model_id!r} decoded non-finite coordinates (broken weights?)")
         return resample_to_count(cloud, n_points).astype(np.float32)
 
 
 def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
     """Thin or densify a decoded cloud to exactly n_points (deterministic).
 
-    Thinning keeps an evenly spread subset that follows the decoder's own density (`spread_subset`: D_e 2-5 %
+    Thinning keeps an evenly spread subset that follows the decoder's own density (`spread_subset`: D_e 2-4 %
     lower than a uniformly random subset on the real submaps, BENCHMARKS.md).
     """
     if n_points is None or n_points == len(cloud):
