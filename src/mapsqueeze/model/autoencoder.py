@@ -131,7 +131,7 @@ class CompressionModel:
 def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
     """Thin or densify a decoded cloud to exactly n_points (deterministic).
 
-    Thinning keeps an evenly spread subset that follows the decoder's own density (`spread_subset`: D_e 2-4 %
+    Thinning keeps an evenly spread subset that follows the decoder's own density (`spread_subset`: D_e 2-6 %
     lower than a uniformly random subset on the real submaps, BENCHMARKS.md).
     """
     if n_points is None or n_points == len(cloud):
