@@ -18,9 +18,10 @@ def test_benchmark_writes_csv_table_and_plot(tmp_path):
     write_points(tmp_path / "street.ply", np.vstack([ground, wall]) + [1000.0, 2000.0, 50.0])
     save_model(build_model(ModelConfig.for_rate("e0")), tmp_path / "e0")
     rows = run_benchmark([tmp_path / "street.ply"], ["octree", "mapsqueeze"], tmp_path / "out",
-                         models=[str(tmp_path / "e0")], log=lambda m: None)
+                         models=[str(tmp_path / "e0")], log=lambda m: None, refine=(0, 2))
     codecs = {r.codec for r in rows}
     assert codecs == {"octree", "mapsqueeze"}
+    assert sorted(r.setting for r in rows if r.codec == "mapsqueeze") == ["e0,q", "e0,q+refine2"]
     octree = sorted((r for r in rows if r.codec == "octree"), key=lambda r: r.bpp)
     # coarser octrees cost fewer bits and lose more accuracy
     assert octree[0].d_e > octree[-1].d_e and octree[-1].d_e < 0.1
@@ -34,9 +35,14 @@ def test_benchmark_writes_csv_table_and_plot(tmp_path):
     assert (tmp_path / "out" / "rd_street.png").stat().st_size > 10_000
 
 
-def test_bench_cli_rejects_missing_input(tmp_path):
+def test_bench_cli_rejects_missing_input_and_bad_refinement(tmp_path):
     result = CliRunner().invoke(app, ["bench", str(tmp_path / "nope"), "-o", str(tmp_path / "o")])
     assert result.exit_code != 0
+    (tmp_path / "a.ply").write_text("")
+    for refine in ("x", "-1", "", "0,20000"):
+        result = CliRunner().invoke(app, ["bench", str(tmp_path / "a.ply"), "--refine", refine, "-o",
+                                          str(tmp_path / "o")])
+        assert result.exit_code != 0 and "--refine" in str(result.exception or result.output), refine
 
 
 def test_the_four_shipped_models_load_and_are_listed():

@@ -36,7 +36,7 @@ from mapsqueeze.codec.entropy import (
     encode_gaps,
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
-from mapsqueeze.errors import ContainerError, InvalidPointCloudError, ModelError
+from mapsqueeze.errors import ContainerError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.io import read_points, write_points
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
 
@@ -265,6 +265,21 @@ def test_identical_bytes_on_repeated_runs(map_points, compressed, model_dir):
     assert mapsqueeze.compress(map_points, model=load_model(model_dir), precision="q") == compressed
 
 
+def test_refined_encoding_keeps_the_format_and_is_deterministic(map_points, compressed, model, tmp_path):
+    refined = mapsqueeze.compress(map_points, model=model, precision="q", refine_steps=3)
+    assert refined != compressed and mapsqueeze.compress(map_points, model=model, refine_steps=3) == refined
+    plain_info, refined_info = mapsqueeze.info(compressed), mapsqueeze.info(refined)
+    assert (refined_info.n_tiles, refined_info.n_raw_tiles) == (plain_info.n_tiles, plain_info.n_raw_tiles)
+    decoded = mapsqueeze.decompress(refined, model=model)
+    assert len(decoded) == len(map_points)
+    write_points(tmp_path / "map.npy", map_points)
+    mapsqueeze.compress_file(tmp_path / "map.npy", tmp_path / "map.msq", model=model, refine_steps=3)
+    assert (tmp_path / "map.msq").read_bytes() == refined
+    for bad in (-1, 1.5, True, 10**6):
+        with pytest.raises(MapsqueezeError, match="refinement steps"):
+            mapsqueeze.compress(map_points, model=model, refine_steps=bad)
+
+
 @pytest.mark.parametrize("suffix", [".ply", ".laz", ".npy"])
 def test_compress_file_streams_chunks_and_gives_the_in_memory_bytes(map_points, compressed, model, tmp_path, suffix):
     from mapsqueeze.codec.compress import compress_chunks
@@ -386,6 +401,8 @@ def run_cli(monkeypatch, capsys, *args):
 def test_cli_round_trip_and_errors(tmp_path, map_points, model_dir, monkeypatch, capsys):
     source, msq, out = tmp_path / "map.ply", tmp_path / "map.msq", tmp_path / "out.npy"
     write_points(source, map_points)
+    code, _ = run_cli(monkeypatch, capsys, "compress", source, "-o", msq, "--model", model_dir, "--refine", "2")
+    assert code in (0, None) and msq.read_bytes() == mapsqueeze.compress(map_points, model=model_dir, refine_steps=2)
     code, _ = run_cli(monkeypatch, capsys, "compress", source, "-o", msq, "--model", model_dir)
     assert code in (0, None) and msq.is_file()
     code, captured = run_cli(monkeypatch, capsys, "info", msq)
@@ -398,6 +415,7 @@ def test_cli_round_trip_and_errors(tmp_path, map_points, model_dir, monkeypatch,
     for args in (["decompress", truncated, "-o", out, "--model", model_dir],
                  ["decompress", msq, "-o", out, "--bbox", "1,2,3"],
                  ["compress", source, "-o", msq, "--precision", "f8", "--model", model_dir],
+                 ["compress", source, "-o", msq, "--refine", "-1", "--model", model_dir],
                  ["compress", tmp_path / "missing.ply", "-o", msq],
                  ["info", source]):
         code, captured = run_cli(monkeypatch, capsys, *args)

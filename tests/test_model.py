@@ -11,7 +11,8 @@ from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.grid import radius_neighbors
 from mapsqueeze.model.density import fit_density_law
 from mapsqueeze.model.kpconv import KPConv
-from mapsqueeze.model.loss import chamfer_loss, depoco_loss
+from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss
+from mapsqueeze.model.refine import refine_embedding
 
 
 def street_patch(n=6000, seed=0, extent=20.0):
@@ -154,6 +155,40 @@ def test_decode_refuses_non_finite_output(tmp_path):
     emb = model.encode(street_patch())
     with pytest.raises(ModelError, match="non-finite"):
         model.decode(emb.points, emb.features)
+
+
+def test_mean_distance_loss_is_the_d_e_metric():
+    from mapsqueeze.metrics import d_euclidean
+
+    rng = np.random.default_rng(4)
+    a, b = rng.random((300, 3)), rng.random((200, 3)) + 0.1
+    loss = mean_distance_loss(torch.from_numpy(a), torch.from_numpy(b))
+    assert loss.item() == pytest.approx(d_euclidean(a, b), rel=1e-9)
+
+
+def test_refinement_lowers_d_e_of_the_shipped_model_and_leaves_the_network_alone():
+    model = load_model("e1")
+    tile = street_patch(n=20000, seed=5, extent=36.0)
+    embedding = model.encode(tile)
+    state = {k: v.clone() for k, v in model.network.state_dict().items()}
+    flags = [p.requires_grad for p in model.network.parameters()]
+    deterministic = torch.are_deterministic_algorithms_enabled()
+    refined = model.refine(tile, embedding, steps=6)
+    assert refined.points.shape == embedding.points.shape and refined.features.shape == embedding.features.shape
+    assert np.abs(refined.points - embedding.points).max() < 2 * 6 * 0.0005 * model.config.map_size  # Adam: ~lr a step
+    target = torch.from_numpy(tile)
+    before, after = (mean_distance_loss(target, torch.from_numpy(model.decode(e.points, e.features))).item()
+                     for e in (embedding, refined))
+    assert after < 0.97 * before, (before, after)
+    again = model.refine(tile, embedding, steps=6)
+    assert np.array_equal(again.points, refined.points) and np.array_equal(again.features, refined.features)
+    assert all(torch.equal(v, state[k]) for k, v in model.network.state_dict().items())
+    assert [p.requires_grad for p in model.network.parameters()] == flags
+    assert torch.are_deterministic_algorithms_enabled() == deterministic
+    unchanged = model.refine(tile, embedding, steps=0)
+    assert np.array_equal(unchanged.features, embedding.features)
+    with pytest.raises(ValueError):
+        refine_embedding(model.network.decoder, target, target[:3], target[:3], steps=-1)
 
 
 def test_density_law_fit_recovers_planar_dimension():

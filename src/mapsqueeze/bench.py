@@ -75,11 +75,14 @@ class Variant:
     decode: Callable[[bytes], np.ndarray]
 
 
-def _learned_variants(codec: str, models: dict[str, object], precision: str) -> list[Variant]:
+def _learned_variants(codec: str, models: dict[str, object], precision: str, refine_steps: int = 0
+                      ) -> list[Variant]:
+    """One variant per model; with refine_steps the setting reads e.g. "e1,q+refine20"."""
     from mapsqueeze.api import compress, decompress
 
-    return [Variant(codec, f"{name},{precision}",
-                    lambda pts, origin, m=model: compress(pts, model=m, precision=precision),
+    label = f"{precision}+refine{refine_steps}" if refine_steps else precision
+    return [Variant(codec, f"{name},{label}",
+                    lambda pts, origin, m=model: compress(pts, model=m, precision=precision, refine_steps=refine_steps),
                     lambda data, m=model: decompress(data, model=m))
             for name, model in models.items()]
 
@@ -105,8 +108,10 @@ def unique_labels(names: list[str]) -> list[str]:
     return ["/".join(p[-depth:]) for p in parts]
 
 
-def build_variants(codecs: list[str], models: list[str], precision: str, log: Callable[[str], None]) -> list[Variant]:
-    """Every (codec, setting) to run; unavailable codecs are skipped with a message."""
+def build_variants(codecs: list[str], models: list[str], precision: str, log: Callable[[str], None],
+                   refine: tuple[int, ...] = (0,)) -> list[Variant]:
+    """Every (codec, setting) to run; unavailable codecs are skipped with a message. The learned codecs run at each
+    number of encode-time refinement steps in `refine` (depoco-ref's paper-mode f16 only without refinement)."""
     from mapsqueeze.baselines import BASELINES, get_baseline, setting_label
     from mapsqueeze.model import import_reference, load_model, shipped_models
     from mapsqueeze.model.autoencoder import CompressionModel
@@ -117,7 +122,9 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
             names = models or shipped_models()
             if not names:
                 log("mapsqueeze: no shipped model; pass --models DIR,... (skipped)")
-            variants += _learned_variants(codec, dict(zip(unique_labels(names), map(load_model, names))), precision)
+            loaded = dict(zip(unique_labels(names), map(load_model, names)))
+            for steps in refine:
+                variants += _learned_variants(codec, loaded, precision, steps)
         elif codec == "depoco-ref":
             refs = sorted(p for p in REFERENCE_DIR.glob("e[0-3]") if (p / "enc_best.pth").is_file())
             if not refs:
@@ -127,8 +134,12 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
                 network = import_reference(p)
                 loaded[p.name] = CompressionModel(network, f"depoco-{p.name}", state_sha256(network))
             # the paper's float16 embeddings, and the same networks through our entropy-coded q embeddings
-            for ref_precision in dict.fromkeys(("f16", precision)):
-                variants += _learned_variants(codec, loaded, ref_precision)
+            if 0 in refine:
+                for ref_precision in dict.fromkeys(("f16", precision)):
+                    variants += _learned_variants(codec, loaded, ref_precision)
+            for steps in refine:
+                if steps:
+                    variants += _learned_variants(codec, loaded, precision, steps)
         elif codec in BASELINES:
             baseline = get_baseline(codec)
             if not baseline.available():
@@ -145,17 +156,19 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
 
 def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: list[str] | None = None,
                   precision: str = "q", split: str = "test", log: Callable[[str], None] = print,
-                  progress: Callable[[str], None] | None = None, fresh: bool = False) -> list[Row]:
+                  progress: Callable[[str], None] | None = None, fresh: bool = False,
+                  refine: tuple[int, ...] = (0,)) -> list[Row]:
     """Run every variant on every cloud; write results.csv, results.md, rd.png (+ rd_<cloud>.png) into out_dir.
 
     Results already in out_dir/results.csv are kept and their (cloud, codec, setting) not run again, so a long
-    benchmark can be resumed or extended by more codecs later; fresh=True starts over.
+    benchmark can be resumed or extended by more codecs later; fresh=True starts over. refine: the encode-time
+    refinement steps the learned codecs run at (each a setting of its own).
     """
     from mapsqueeze.geometry.normals import normals_pca
     from mapsqueeze.metrics import evaluate
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    variants = build_variants(codecs, models or [], precision, log)
+    variants = build_variants(codecs, models or [], precision, log, refine)
     rows: list[Row] = [] if fresh else read_results(out_dir / "results.csv")
     done = {(r.cloud, r.codec, r.setting) for r in rows}
     for cloud in collect_clouds(inputs, split):

@@ -14,6 +14,20 @@ from mapsqueeze.errors import MapsqueezeError
 console = Console()
 
 
+def parse_refine_steps(text: str) -> list[int]:
+    """'0,20' -> [0, 20]: refinement step counts from 0 to MAX_REFINE_STEPS, or a MapsqueezeError."""
+    from mapsqueeze.codec.compress import MAX_REFINE_STEPS
+
+    try:
+        steps = [int(v) for v in text.split(",")]
+    except ValueError:
+        steps = []
+    if not steps or not all(0 <= v <= MAX_REFINE_STEPS for v in steps):
+        raise MapsqueezeError(f"--refine: expected comma-separated step counts from 0 to {MAX_REFINE_STEPS}, "
+                              f"got {text!r}")
+    return steps
+
+
 @app.command("bench")
 def bench_cmd(
     inputs: list[Path] = typer.Argument(..., help="Dataset folders (manifest.json), folders of clouds, or files"),
@@ -23,6 +37,8 @@ def bench_cmd(
                                                     "default: every shipped model"),
     precision: str = typer.Option("q", help="Embedding precision of mapsqueeze: q, f16 or f32"),
     split: str = typer.Option("test", help="Split of dataset folders to run on: train, val, test or all (a held-out dataset)"),
+    refine: str = typer.Option("0", help="Encode-time refinement steps of the learned codecs, comma-separated "
+                                         "(each a setting of its own, e.g. 0,20; 0 is the paper's encoder)"),
     fresh: bool = typer.Option(False, "--fresh", help="Ignore results already in the output folder (default: keep "
                                                       "them and run only the missing cloud/codec/setting rows)"),
 ):
@@ -32,10 +48,11 @@ def bench_cmd(
     for path in inputs:
         if not path.exists():
             raise MapsqueezeError(f"{path}: no such file or folder")
+    refine_steps = tuple(dict.fromkeys(parse_refine_steps(refine)))
     with console.status("benchmark") as status:
         rows = run_benchmark(inputs, [c.strip() for c in codecs.split(",") if c.strip()], out,
                              models=[m.strip() for m in models.split(",")] if models else None,
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
-                             progress=lambda m: status.update(m), fresh=fresh)
+                             progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps)
     console.print((out / "results.md").read_text())
     console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd*.png")

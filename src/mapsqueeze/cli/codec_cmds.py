@@ -11,6 +11,7 @@ from rich.table import Table
 
 from mapsqueeze import api
 from mapsqueeze.cli.app import app, parse_numbers
+from mapsqueeze.codec.compress import MAX_REFINE_STEPS
 
 
 @contextmanager
@@ -42,10 +43,13 @@ def compress_command(
     model: str = typer.Option(api.DEFAULT_MODEL, "--model", help="e0|e1|e2|e3 or a model directory"),
     precision: str = typer.Option(api.DEFAULT_PRECISION, "--precision",
                                   help="embedding storage: f32, f16 (the paper's) or q (entropy-coded)"),
+    refine: int = typer.Option(0, "--refine", min=0, max=MAX_REFINE_STEPS, metavar="STEPS",
+                               help="encode-time refinement steps per tile: 20 lowers D_e ~10 % at the same size, "
+                                    "encoding ~10x slower; 0 is the paper's encoder"),
 ) -> None:
     """Compress a map: 40 x 40 x 15 m tiles, each encoded by the network (sparse tiles near-exactly)."""
     with _tile_progress("compressing") as progress:
-        summary = api.compress_file(map_path, output, model, precision, progress=progress)
+        summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, progress=progress)
     Console().print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles, "
                     f"{summary.file_bytes:,} bytes, {summary.bits_per_point:.4f} bits per point")
 

@@ -30,7 +30,7 @@ from mapsqueeze.codec.embedding import (
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
 from mapsqueeze.data.tiling import fit_grid, tile_map, to_local
-from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.io import validate_points
 
@@ -41,6 +41,9 @@ embedding point into hundreds of points of a dense surface, fits such sparse til
 RAW_CANDIDATE_POINTS_PER_EMBEDDING = 20
 """Raw coding is also tried (and kept when smaller) for tiles with up to this many points per embedding point;
 beyond it raw coding (>= 13 bits a point) cannot beat even f32 embeddings (192 bits per embedding point)."""
+
+MAX_REFINE_STEPS = 10_000
+"""Encode-time refinement steps accepted at most per tile (`CompressionModel.refine`; a guard against typos)."""
 
 ProgressCallback = Callable[[int, int], None]
 """Called with (tiles done, tiles in total) after each tile."""
@@ -73,21 +76,24 @@ def compress_map(
     position_step_m: float | None = None,
     feature_step_std: float = DEFAULT_FEATURE_STEP_STD,
     progress: ProgressCallback | None = None,
+    refine_steps: int = 0,
 ) -> bytes:
     """Compress an (N, 3) float64 map (metres, any coordinate frame) with a loaded CompressionModel.
 
     position_step_m / feature_step_std set the q quantiser (default DEFAULT_POSITION_STEP_RS x r_s and
-    DEFAULT_FEATURE_STEP_STD). Tiles are encoded one at a time; only their compact embeddings and payloads are
+    DEFAULT_FEATURE_STEP_STD). refine_steps > 0 refines each tile's embedding at encode time (`CompressionModel.encode`:
+slower encoding, lower D_e, same format). Tiles are encoded one at a time; only their compact embeddings and payloads are
     kept until the file is assembled (q fits its histograms over all tiles before coding them). Deterministic: the
     same points, model and settings give the same bytes.
     """
+    _check_refine_steps(refine_steps)
     points = validate_points(points, name="map")
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     tile_points = ((tile.index, points[tile.point_indices]) for tile in tiles)
     return _compress_tiles(tile_points, len(tiles), len(points), origin, model, precision, position_step_m,
-                           feature_step_std, progress)
+                           feature_step_std, progress, refine_steps)
 
 
 def compress_chunks(
@@ -98,6 +104,7 @@ def compress_chunks(
     feature_step_std: float = DEFAULT_FEATURE_STEP_STD,
     progress: ProgressCallback | None = None,
     spill_dir: str | os.PathLike | None = None,
+    refine_steps: int = 0,
 ) -> bytes:
     """compress_map for a map read in chunks (e.g. `mapsqueeze.io.iter_points`): memory bounded by one chunk and
     one tile, whatever the map's size. Gives the same bytes as compress_map on the concatenated chunks.
@@ -106,6 +113,7 @@ def compress_chunks(
     float64 chunks in the same order. Pass 2 appends every tile's points to a float64 spill file in a temporary
     directory (in spill_dir, default the system's; 24 bytes a point), then encodes the tiles one by one.
     """
+    _check_refine_steps(refine_steps)
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     for chunk in chunks():
@@ -130,7 +138,12 @@ def compress_chunks(
         tile_points = ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3))
                        for index in indices)
         return _compress_tiles(tile_points, len(indices), n_points, origin, model, precision, position_step_m,
-                               feature_step_std, progress)
+                               feature_step_std, progress, refine_steps)
+
+
+def _check_refine_steps(steps: int) -> None:
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 0 <= steps <= MAX_REFINE_STEPS:
+        raise MapsqueezeError(f"refinement steps must be an integer from 0 to {MAX_REFINE_STEPS}, got {steps!r}")
 
 
 def _check_tile_size(index: tuple[int, int, int], n_points: int) -> None:
@@ -153,12 +166,14 @@ def _compress_tiles(
     position_step_m: float | None,
     feature_step_std: float,
     progress: ProgressCallback | None,
+    refine_steps: int,
 ) -> bytes:
     """Encode (tile index, its float64 world points) pairs, given in tile order, and assemble the container."""
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     encoded = []
     for done, (index, points) in enumerate(tile_points, start=1):
-        encoded.append(_encode_tile(index, origin + np.asarray(index) * tile_size, points, tile_size, model))
+        encoded.append(_encode_tile(index, origin + np.asarray(index) * tile_size, points, tile_size, model,
+                                    refine_steps))
         if progress:
             progress(done, n_tiles)
     n_features = int(model.config.embedding_dim)
@@ -186,7 +201,7 @@ def _compress_tiles(
 
 
 def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_points: np.ndarray,
-                 tile_size: np.ndarray, model) -> _EncodedTile:
+                 tile_size: np.ndarray, model, refine_steps: int) -> _EncodedTile:
     _check_tile_size(index, len(tile_points))
     lo, hi = quantise_bounds(tile_points - tile_origin, tile_size)
     local = to_local(tile_points, frame_origin(tile_origin, lo, tile_size), tile_size)
@@ -197,6 +212,8 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
         raw = encode_raw_tile(local, tile_size)
     if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:
         return _EncodedTile(index, len(local), lo, hi, None, None, raw)
+    if refine_steps:
+        embedding = model.refine(local, embedding, refine_steps)
     return _EncodedTile(index, len(local), lo, hi, embedding.points, embedding.features, raw)
 
 

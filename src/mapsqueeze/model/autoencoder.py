@@ -14,6 +14,7 @@ from mapsqueeze.geometry.morton import spread_subset
 from mapsqueeze.model.config import ModelConfig
 from mapsqueeze.model.deconv import AdaptiveDeconv
 from mapsqueeze.model.kpconv import EncoderBlock
+from mapsqueeze.model.refine import refine_embedding
 
 
 class Encoder(nn.Module):
@@ -102,11 +103,26 @@ class CompressionModel:
     @torch.no_grad()
     def encode(self, points_local: np.ndarray) -> Embedding:
         """Tile-local points (N,3) metres -> embedding (positions in metres, features)."""
-        scale = self.config.map_size
-        pts = np.asarray(self.select_input(points_local), dtype=np.float32) / np.float32(scale)
-        emb_points, emb_features = self.network.encoder(torch.from_numpy(pts).to(self.device))
-        return Embedding((emb_points.cpu().numpy() * np.float32(scale)).astype(np.float32),
-                         emb_features.cpu().numpy().astype(np.float32))
+        emb_points, emb_features = self.network.encoder(self._normalised_input(points_local))
+        return self._embedding(emb_points, emb_features)
+
+    def refine(self, points_local: np.ndarray, embedding: Embedding, steps: int) -> Embedding:
+        """The embedding of these tile-local points after `steps` steps of encode-time refinement towards a lower
+        D_e of the decoder's output (`refine_embedding`: same format, ~0.5 s a step for a 40 m tile on one core)."""
+        scale = np.float32(self.config.map_size)
+        points = torch.from_numpy(np.ascontiguousarray(embedding.points, dtype=np.float32) / scale).to(self.device)
+        features = torch.from_numpy(np.ascontiguousarray(embedding.features, dtype=np.float32)).to(self.device)
+        points, features = refine_embedding(self.network.decoder, self._normalised_input(points_local), points,
+                                            features, steps)
+        return self._embedding(points, features)
+
+    def _normalised_input(self, points_local: np.ndarray) -> torch.Tensor:
+        scale = np.float32(self.config.map_size)
+        return torch.from_numpy(np.asarray(self.select_input(points_local), dtype=np.float32) / scale).to(self.device)
+
+    def _embedding(self, points: torch.Tensor, features: torch.Tensor) -> Embedding:
+        scale = np.float32(self.config.map_size)
+        return Embedding((points.cpu().numpy() * scale).astype(np.float32), features.cpu().numpy().astype(np.float32))
 
     @torch.no_grad()
     def decode(self, points: np.ndarray, features: np.ndarray, n_points: int | None = None) -> np.ndarray:

@@ -42,3 +42,16 @@ def depoco_loss(reference: torch.Tensor, output: torch.Tensor, intermediate: lis
         for cloud in intermediate:
             loss = loss + beta * chamfer_loss(reference, cloud, tree)
     return loss, main
+
+
+def mean_distance_loss(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None = None):
+    """Symmetric mean nearest-neighbour distance (not squared): D_e (eq. 9) of `output` against `reference`, in the
+    units of the inputs, differentiable in both (KD-tree neighbours as in `chamfer_loss`)."""
+    if reference_tree is None:
+        reference_tree = _kdtree(reference)
+    out_to_ref = _nearest(reference_tree, output)
+    ref_to_out = _nearest(_kdtree(output), reference)
+    eps = 1e-12  # keeps the gradient of sqrt finite where a point sits exactly on its neighbour
+    d_out = (((output - reference[out_to_ref]) ** 2).sum(dim=1) + eps).sqrt().mean()
+    d_ref = (((reference - output[ref_to_out]) ** 2).sum(dim=1) + eps).sqrt().mean()
+    return 0.5 * d_out + 0.5 * d_ref
