@@ -37,14 +37,15 @@ def simulated_map(seed: int = 7, n_submaps: int = 4) -> np.ndarray:
     return voxel_filter(merged, 0.1) + UTM_OFFSET_M
 
 
-def run_case(name: str, points: np.ndarray, model, out_dir: Path) -> DemoResult:
-    """Compress + decompress through the public API, write MAP.msq and the decoded PLY, evaluate."""
+def run_case(name: str, points: np.ndarray, model, out_dir: Path, refine_steps: int = 0) -> DemoResult:
+    """Compress (with refine_steps of encode-time refinement) + decompress through the public API, write NAME.msq
+    and the decoded PLY, evaluate."""
     from mapsqueeze.api import compress, decompress
     from mapsqueeze.io import atomic_write_bytes, write_points
     from mapsqueeze.metrics import evaluate
 
     t0 = time.perf_counter()
-    data = compress(points, model=model)
+    data = compress(points, model=model, refine_steps=refine_steps)
     t1 = time.perf_counter()
     decoded = decompress(data, model=model)
     t2 = time.perf_counter()
@@ -54,7 +55,9 @@ def run_case(name: str, points: np.ndarray, model, out_dir: Path) -> DemoResult:
     return DemoResult(name, len(points), len(data), len(decoded), metrics, t1 - t0, t2 - t1)
 
 
-def run_demo(model_name: str, out_dir: Path, progress=print) -> list[DemoResult]:
+def run_demo(model_name: str, out_dir: Path, progress=print, refine_steps: int = 0) -> list[DemoResult]:
+    """The simulated map and the real KITTI submap with the paper's encoder; with refine_steps > 0 the KITTI submap
+    once more with that much encode-time refinement."""
     from mapsqueeze.io import read_points, write_points
     from mapsqueeze.model import load_model
 
@@ -66,7 +69,12 @@ def run_demo(model_name: str, out_dir: Path, progress=print) -> list[DemoResult]
     write_points(out_dir / "simulated_map.ply", sim)
     results = [run_case("simulated_map", sim, model, out_dir)]
     if REAL_SUBMAP.is_file():
-        results.append(run_case("kitti_hdl64_6scans", read_points(REAL_SUBMAP), model, out_dir))
+        kitti = read_points(REAL_SUBMAP)
+        results.append(run_case("kitti_hdl64_6scans", kitti, model, out_dir))
+        if refine_steps:
+            progress(f"KITTI submap again with {refine_steps} refinement steps ...")
+            results.append(run_case(f"kitti_hdl64_6scans_refine{refine_steps}", kitti, model, out_dir,
+                                    refine_steps))
     else:
         progress(f"{REAL_SUBMAP} not found: real-data case skipped")
     return results

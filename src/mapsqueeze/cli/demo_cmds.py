@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.table import Table
 
 from mapsqueeze.cli.app import app
+from mapsqueeze.codec.compress import MAX_REFINE_STEPS
 
 console = Console()
 
@@ -17,11 +18,14 @@ console = Console()
 def demo_cmd(
     model: str = typer.Option("e1", help="Shipped model name or model folder"),
     out: Path = typer.Option(Path("demo_out"), "-o", "--out", help="Where the .msq files and decoded clouds go"),
+    refine: int = typer.Option(20, min=0, max=MAX_REFINE_STEPS, metavar="STEPS",
+                               help="Also compress the KITTI submap with this many encode-time refinement steps "
+                                    "(0: skip)"),
 ):
     """Compress and decompress a simulated map (and the real KITTI submap when ../shared is present)."""
     from mapsqueeze.demo import run_demo
 
-    results = run_demo(model, out, progress=lambda m: console.print(f"[dim]{m}"))
+    results = run_demo(model, out, progress=lambda m: console.print(f"[dim]{m}"), refine_steps=refine)
     table = Table(title=f"mapsqueeze demo, model {model}")
     table.add_column("")
     for r in results:

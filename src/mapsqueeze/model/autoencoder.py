@@ -108,12 +108,13 @@ class CompressionModel:
 
     def refine(self, points_local: np.ndarray, embedding: Embedding, steps: int) -> Embedding:
         """The embedding of these tile-local points after `steps` steps of encode-time refinement towards a lower
-        D_e of the decoder's output (`refine_embedding`: same format, ~0.5 s a step for a 40 m tile on one core)."""
+        D_e of the decoder's output against all of them (not only the encoder's max_input_points; `refine_embedding`:
+        same format, ~0.5-1 s a step for a 40 m tile on one core)."""
         scale = np.float32(self.config.map_size)
         points = torch.from_numpy(np.ascontiguousarray(embedding.points, dtype=np.float32) / scale).to(self.device)
         features = torch.from_numpy(np.ascontiguousarray(embedding.features, dtype=np.float32)).to(self.device)
-        points, features = refine_embedding(self.network.decoder, self._normalised_input(points_local), points,
-                                            features, steps)
+        target = torch.from_numpy(np.asarray(points_local, dtype=np.float32) / scale).to(self.device)  # every point
+        points, features = refine_embedding(self.network.decoder, target, points, features, steps)
         return self._embedding(points, features)
 
     def _normalised_input(self, points_local: np.ndarray) -> torch.Tensor:
