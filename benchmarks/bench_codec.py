@@ -1,6 +1,6 @@
 """End-to-end codec speed, memory and rate on a multi-tile map, file to file, on 2 CPU cores.
 
-Run: `.venv/bin/python benchmarks/bench_codec.py --model DIR [--copies 3] [--precision q f16]`
+Run: `.venv/bin/python benchmarks/bench_codec.py --model DIR [--copies 3] [--precision q f16] [--refine 0 20]`
 (figures go to BENCHMARKS.md, "## Codec"). The map is copies of the real KITTI submap
 (../shared/data/real/submaps/kitti_hdl64_6scans.ply), mirrored four ways, one per tile of a copies x copies grid
 at UTM coordinates (optionally cropped so that the copies straddle the tile grid), written as PLY. Compression
@@ -92,7 +92,8 @@ def _stage(args) -> None:
 
     start = time.perf_counter()
     if args.stage == "compress":
-        summary = mapsqueeze.compress_file(args.input, args.output, model=args.model, precision=args.precision)
+        summary = mapsqueeze.compress_file(args.input, args.output, model=args.model, precision=args.precision,
+                                           refine_steps=args.refine)
         result = {"bytes": summary.file_bytes, "tiles": summary.n_tiles, "raw_tiles": summary.n_raw_tiles,
                   "points": summary.n_points}
     else:
@@ -102,9 +103,9 @@ def _stage(args) -> None:
     print(json.dumps(result))
 
 
-def _run_stage(stage: str, source: Path, target: Path, model: str, precision: str) -> dict:
+def _run_stage(stage: str, source: Path, target: Path, model: str, precision: str, refine: int) -> dict:
     command = [sys.executable, __file__, "--stage", stage, "--input", str(source), "--output", str(target),
-               "--model", model, "--precision", precision]
+               "--model", model, "--precision", precision, "--refine", str(refine)]
     done = subprocess.run(command, check=True, capture_output=True, text=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -116,12 +117,13 @@ def main() -> None:
     parser.add_argument("--crop", type=float, nargs=2, default=(0.0, 0.0), metavar=("DX", "DY"),
                         help="drop the map's first DX, DY metres so that copies straddle the tile grid")
     parser.add_argument("--precision", nargs="+", default=["q", "f16"])
+    parser.add_argument("--refine", type=int, nargs="+", default=[0], help="encode-time refinement steps (each a row)")
     parser.add_argument("--stage", choices=["compress", "decompress"], help=argparse.SUPPRESS)
     parser.add_argument("--input", help=argparse.SUPPRESS)
     parser.add_argument("--output", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.stage:
-        args.precision = args.precision[0]
+        args.precision, args.refine = args.precision[0], args.refine[0]
         _stage(args)
         return
     from mapsqueeze.io import read_points, write_points
@@ -137,14 +139,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         source = Path(tmp) / "map.ply"
         write_points(source, points)
-        for precision in args.precision:
+        for precision, refine in ((p, r) for p in args.precision for r in args.refine):
             msq, decoded_path = Path(tmp) / f"map_{precision}.msq", Path(tmp) / f"decoded_{precision}.npy"
-            packed = _run_stage("compress", source, msq, args.model, precision)
-            unpacked = _run_stage("decompress", msq, decoded_path, args.model, precision)
+            packed = _run_stage("compress", source, msq, args.model, precision, refine)
+            unpacked = _run_stage("decompress", msq, decoded_path, args.model, precision, refine)
             decoded = read_points(decoded_path)
             d_e = d_euclidean(points, decoded)
             border, interior = border_and_interior_d_e(points, decoded)
-            print(f"| {precision} | {packed['tiles']} ({packed['raw_tiles']}) | {packed['bytes']:,} "
+            label = f"{precision}, refine {refine}" if refine else precision
+            print(f"| {label} | {packed['tiles']} ({packed['raw_tiles']}) | {packed['bytes']:,} "
                   f"| {8 * packed['bytes'] / len(points):.4f} | {packed['seconds']:.1f} "
                   f"| {len(points) / packed['seconds']:,.0f} | {packed['peak_rss_mb']:,.0f} "
                   f"| {unpacked['seconds']:.1f} | {unpacked['points'] / unpacked['seconds']:,.0f} "
