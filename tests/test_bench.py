@@ -35,6 +35,15 @@ def test_benchmark_writes_csv_table_and_plot(tmp_path):
     assert (tmp_path / "out" / "rd_street.png").stat().st_size > 10_000
 
 
+def test_every_nth_cloud(tmp_path):
+    rng = np.random.default_rng(1)
+    (tmp_path / "clouds").mkdir()
+    for i in range(5):
+        write_points(tmp_path / "clouds" / f"c{i}.ply", rng.random((500, 3)) * 10)
+    rows = run_benchmark([tmp_path / "clouds"], ["octree"], tmp_path / "out", log=lambda m: None, every=2)
+    assert sorted({r.cloud for r in rows}) == ["c0", "c2", "c4"]
+
+
 def test_bench_cli_rejects_missing_input_and_bad_refinement(tmp_path):
     result = CliRunner().invoke(app, ["bench", str(tmp_path / "nope"), "-o", str(tmp_path / "o")])
     assert result.exit_code != 0

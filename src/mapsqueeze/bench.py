@@ -157,12 +157,13 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
 def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: list[str] | None = None,
                   precision: str = "q", split: str = "test", log: Callable[[str], None] = print,
                   progress: Callable[[str], None] | None = None, fresh: bool = False,
-                  refine: tuple[int, ...] = (0,)) -> list[Row]:
+                  refine: tuple[int, ...] = (0,), every: int = 1) -> list[Row]:
     """Run every variant on every cloud; write results.csv, results.md, rd.png (+ rd_<cloud>.png) into out_dir.
 
     Results already in out_dir/results.csv are kept and their (cloud, codec, setting) not run again, so a long
     benchmark can be resumed or extended by more codecs later; fresh=True starts over. refine: the encode-time
-    refinement steps the learned codecs run at (each a setting of its own).
+    refinement steps the learned codecs run at (each a setting of its own). every=N runs on every N-th cloud only
+    (the first, the (N+1)-th, ...; names unchanged, so a subset can be added to a full run's folder).
     """
     from mapsqueeze.geometry.normals import normals_pca
     from mapsqueeze.metrics import evaluate
@@ -171,7 +172,11 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
     variants = build_variants(codecs, models or [], precision, log, refine)
     rows: list[Row] = [] if fresh else read_results(out_dir / "results.csv")
     done = {(r.cloud, r.codec, r.setting) for r in rows}
-    for cloud in collect_clouds(inputs, split):
+    if every < 1:
+        raise MapsqueezeError(f"every must be a positive number of clouds, got {every}")
+    for position, cloud in enumerate(collect_clouds(inputs, split)):
+        if position % every:
+            continue
         todo = [v for v in variants if (cloud.name, v.codec, v.setting) not in done]
         if not todo:
             continue

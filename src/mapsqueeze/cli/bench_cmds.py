@@ -39,6 +39,7 @@ def bench_cmd(
     split: str = typer.Option("test", help="Split of dataset folders to run on: train, val, test or all (a held-out dataset)"),
     refine: str = typer.Option("0", help="Encode-time refinement steps of the learned codecs, comma-separated "
                                          "(each a setting of its own, e.g. 0,20; 0 is the paper's encoder)"),
+    every: int = typer.Option(1, min=1, help="Run on every N-th cloud only (first, N+1-th, ...), e.g. for slow settings"),
     fresh: bool = typer.Option(False, "--fresh", help="Ignore results already in the output folder (default: keep "
                                                       "them and run only the missing cloud/codec/setting rows)"),
 ):
@@ -53,6 +54,6 @@ def bench_cmd(
         rows = run_benchmark(inputs, [c.strip() for c in codecs.split(",") if c.strip()], out,
                              models=[m.strip() for m in models.split(",")] if models else None,
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
-                             progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps)
+                             progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps, every=every)
     console.print((out / "results.md").read_text())
     console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd*.png")
