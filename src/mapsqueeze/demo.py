@@ -73,7 +73,7 @@ def run_demo(model_name: str, out_dir: Path, progress=print, refine_steps: int =
         results.append(run_case("kitti_hdl64_6scans", kitti, model, out_dir))
         if refine_steps:
             progress(f"KITTI submap again with {refine_steps} refinement steps ...")
-            results.append(run_case(f"kitti_hdl64_6scans_refine{refine_steps}", kitti, model, out_dir,
+            results.append(run_case(f"kitti_refine{refine_steps}", kitti, model, out_dir,
                                     refine_steps))
     else:
         progress(f"{REAL_SUBMAP} not found: real-data case skipped")
