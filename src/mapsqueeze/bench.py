@@ -168,12 +168,12 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
     from mapsqueeze.geometry.normals import normals_pca
     from mapsqueeze.metrics import evaluate
 
+    if every < 1:
+        raise MapsqueezeError(f"every must be a positive number of clouds, got {every}")
     out_dir.mkdir(parents=True, exist_ok=True)
     variants = build_variants(codecs, models or [], precision, log, refine)
     rows: list[Row] = [] if fresh else read_results(out_dir / "results.csv")
     done = {(r.cloud, r.codec, r.setting) for r in rows}
-    if every < 1:
-        raise MapsqueezeError(f"every must be a positive number of clouds, got {every}")
     for position, cloud in enumerate(collect_clouds(inputs, split)):
         if position % every:
             continue

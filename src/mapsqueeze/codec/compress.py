@@ -81,10 +81,10 @@ def compress_map(
     """Compress an (N, 3) float64 map (metres, any coordinate frame) with a loaded CompressionModel.
 
     position_step_m / feature_step_std set the q quantiser (default DEFAULT_POSITION_STEP_RS x r_s and
-    DEFAULT_FEATURE_STEP_STD). refine_steps > 0 refines each tile's embedding at encode time (`CompressionModel.encode`:
-slower encoding, lower D_e, same format). Tiles are encoded one at a time; only their compact embeddings and payloads are
-    kept until the file is assembled (q fits its histograms over all tiles before coding them). Deterministic: the
-    same points, model and settings give the same bytes.
+    DEFAULT_FEATURE_STEP_STD). refine_steps > 0 refines each network tile's embedding at encode time
+    (`CompressionModel.refine`: slower encoding, lower D_e, same format). Tiles are encoded one at a time; only their
+    compact embeddings and payloads are kept until the file is assembled (q fits its histograms over all tiles
+    before coding them). Deterministic: the same points, model and settings give the same bytes.
     """
     _check_refine_steps(refine_steps)
     points = validate_points(points, name="map")
