@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mapsqueeze.codec.compress import MAX_REFINE_STEPS
+
 KITTI_SUBMAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "submaps" / "kitti_hdl64_6scans.ply"
 UTM_OFFSET = np.array([500_000.0, 4_000_000.0, 50.0])  # on the 40 x 40 x 15 m tile grid (z tile 45-60 m)
 CORES = 2
@@ -122,6 +124,8 @@ def main() -> None:
     parser.add_argument("--input", help=argparse.SUPPRESS)
     parser.add_argument("--output", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if not all(0 <= steps <= MAX_REFINE_STEPS for steps in args.refine):
+        parser.error(f"--refine: step counts from 0 to {MAX_REFINE_STEPS}")
     if args.stage:
         args.precision, args.refine = args.precision[0], args.refine[0]
         _stage(args)

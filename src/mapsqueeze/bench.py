@@ -45,24 +45,31 @@ class Cloud:
     origin: np.ndarray  # lower corner of its box: mapsqueeze tiles start here
 
 
-def collect_clouds(inputs: list[Path], split: str = "test") -> Iterator[Cloud]:
-    """Clouds from dataset folders (the given split), plain folders (every cloud file) and single files."""
+def collect_clouds(inputs: list[Path], split: str = "test", every: int = 1) -> Iterator[Cloud]:
+    """Clouds from dataset folders (the given split), plain folders (every cloud file) and single files; with
+    every=N only the first, (N+1)-th, ... of them (the others are not read)."""
     from mapsqueeze.data.mapping import MANIFEST_NAME, read_dataset
     from mapsqueeze.io import read_points
     from mapsqueeze.train import CLOUD_SUFFIXES
 
-    for path in inputs:
-        if (path / MANIFEST_NAME).is_file():
-            for record in read_dataset(path).split(split):
-                submap = record.load()
-                yield Cloud(f"{path.name}/{record.path.stem}", submap.points, record.bounds[0])
-        elif path.is_dir():
-            for file in sorted(p for p in path.iterdir() if p.suffix in CLOUD_SUFFIXES):
-                points = read_points(file)
-                yield Cloud(file.stem, points, points.min(axis=0))
-        else:
-            points = read_points(path)
-            yield Cloud(path.stem, points, points.min(axis=0))
+    def sources() -> Iterator[tuple[str, Callable[[], tuple[np.ndarray, np.ndarray]]]]:
+        """(name, loader of (points, origin)) of every cloud, nothing read yet."""
+        for path in inputs:
+            if (path / MANIFEST_NAME).is_file():
+                for record in read_dataset(path).split(split):
+                    yield f"{path.name}/{record.path.stem}", lambda r=record: (r.load().points, r.bounds[0])
+            else:
+                files = sorted(p for p in path.iterdir() if p.suffix in CLOUD_SUFFIXES) if path.is_dir() else [path]
+                for file in files:
+                    yield file.stem, lambda f=file: _points_and_corner(read_points(f))
+
+    for position, (name, load) in enumerate(sources()):
+        if position % every == 0:
+            yield Cloud(name, *load())
+
+
+def _points_and_corner(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return points, points.min(axis=0)
 
 
 @dataclass
@@ -168,15 +175,20 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
     from mapsqueeze.geometry.normals import normals_pca
     from mapsqueeze.metrics import evaluate
 
+    from mapsqueeze.codec.compress import check_refine_steps
+
     if every < 1:
         raise MapsqueezeError(f"every must be a positive number of clouds, got {every}")
+    refine = tuple(dict.fromkeys(refine))
+    if not refine:
+        raise MapsqueezeError("refine: give at least one number of refinement steps (0: the paper's encoder)")
+    for steps in refine:
+        check_refine_steps(steps)
     out_dir.mkdir(parents=True, exist_ok=True)
     variants = build_variants(codecs, models or [], precision, log, refine)
     rows: list[Row] = [] if fresh else read_results(out_dir / "results.csv")
     done = {(r.cloud, r.codec, r.setting) for r in rows}
-    for position, cloud in enumerate(collect_clouds(inputs, split)):
-        if position % every:
-            continue
+    for cloud in collect_clouds(inputs, split, every):
         todo = [v for v in variants if (cloud.name, v.codec, v.setting) not in done]
         if not todo:
             continue

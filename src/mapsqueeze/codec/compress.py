@@ -86,7 +86,7 @@ def compress_map(
     compact embeddings and payloads are kept until the file is assembled (q fits its histograms over all tiles
     before coding them). Deterministic: the same points, model and settings give the same bytes.
     """
-    _check_refine_steps(refine_steps)
+    check_refine_steps(refine_steps)
     points = validate_points(points, name="map")
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
@@ -113,7 +113,7 @@ def compress_chunks(
     float64 chunks in the same order. Pass 2 appends every tile's points to a float64 spill file in a temporary
     directory (in spill_dir, default the system's; 24 bytes a point), then encodes the tiles one by one.
     """
-    _check_refine_steps(refine_steps)
+    check_refine_steps(refine_steps)
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     for chunk in chunks():
@@ -141,7 +141,8 @@ def compress_chunks(
                                feature_step_std, progress, refine_steps)
 
 
-def _check_refine_steps(steps: int) -> None:
+def check_refine_steps(steps: int) -> None:
+    """MapsqueezeError unless steps is an integer from 0 to MAX_REFINE_STEPS."""
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 0 <= steps <= MAX_REFINE_STEPS:
         raise MapsqueezeError(f"refinement steps must be an integer from 0 to {MAX_REFINE_STEPS}, got {steps!r}")
 

@@ -110,9 +110,8 @@ class CompressionModel:
         """The embedding of these tile-local points after `steps` steps of encode-time refinement towards a lower
         D_e of the decoder's output against all of them (not only the encoder's max_input_points; `refine_embedding`:
         same format, ~0.5-1 s a step for a 40 m tile on one core)."""
+        points, features = self._normalised_embedding(embedding.points, embedding.features)
         scale = np.float32(self.config.map_size)
-        points = torch.from_numpy(np.ascontiguousarray(embedding.points, dtype=np.float32) / scale).to(self.device)
-        features = torch.from_numpy(np.ascontiguousarray(embedding.features, dtype=np.float32)).to(self.device)
         target = torch.from_numpy(np.asarray(points_local, dtype=np.float32) / scale).to(self.device)  # every point
         points, features = refine_embedding(self.network.decoder, target, points, features, steps)
         return self._embedding(points, features)
@@ -120,6 +119,11 @@ class CompressionModel:
     def _normalised_input(self, points_local: np.ndarray) -> torch.Tensor:
         scale = np.float32(self.config.map_size)
         return torch.from_numpy(np.asarray(self.select_input(points_local), dtype=np.float32) / scale).to(self.device)
+
+    def _normalised_embedding(self, points: np.ndarray, features: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        scale = np.float32(self.config.map_size)
+        return (torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32) / scale).to(self.device),
+                torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32)).to(self.device))
 
     def _embedding(self, points: torch.Tensor, features: torch.Tensor) -> Embedding:
         scale = np.float32(self.config.map_size)
@@ -134,8 +138,7 @@ class CompressionModel:
         neighbours (arbitrary density). Raises ModelError if the network outputs a non-finite coordinate.
         """
         scale = np.float32(self.config.map_size)
-        p = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32) / scale).to(self.device)
-        f = torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32)).to(self.device)
+        p, f = self._normalised_embedding(points, features)
         if len(p) == 0:
             return np.zeros((0, 3), dtype=np.float32)
         output, _ = self.network.decoder(p, f)

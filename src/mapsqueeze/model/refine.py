@@ -38,15 +38,17 @@ def _frozen(module: torch.nn.Module):
 
 
 @contextlib.contextmanager
-def _deterministic():
+def _deterministic(device: torch.device):
     """torch's deterministic kernels inside the block (the backward of a gather with repeated indices otherwise
-    accumulates in a thread-dependent order on CPU, and 20 steps amplify that into different files)."""
-    previous = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True)
+    accumulates in a thread-dependent order on CPU, and 20 steps amplify that into different files). On a GPU,
+    kernels without a deterministic version (cuBLAS without CUBLAS_WORKSPACE_CONFIG) only warn. Both of torch's
+    settings are restored after."""
+    previous = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
+    torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(previous)
+        torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
 
 
 def refine_embedding(decoder: torch.nn.Module, target: torch.Tensor, points: torch.Tensor, features: torch.Tensor,
@@ -66,7 +68,7 @@ def refine_embedding(decoder: torch.nn.Module, target: torch.Tensor, points: tor
     shift = torch.zeros_like(points, requires_grad=True)
     refined = features.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam([{"params": [refined], "lr": feature_lr}, {"params": [shift], "lr": position_lr}])
-    with _frozen(decoder), _deterministic(), torch.enable_grad():
+    with _frozen(decoder), _deterministic(points.device), torch.enable_grad():
         for _ in range(steps):
             optimiser.zero_grad()
             output, _ = decoder(points + shift, refined)
