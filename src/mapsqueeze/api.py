@@ -42,7 +42,7 @@ def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision
 
     model: shipped name (e0..e3), model directory or loaded CompressionModel. precision: f32, f16 or q.
     refine_steps: encode-time refinement of each tile's embedding (0: the paper's encoder; 20: ~10 % lower D_e at
-    the same size, encoding ~10x slower; decoding unchanged). progress(done, total) is called after each tile.
+    the same size, encoding 10-45x slower on CPU; decoding unchanged). progress(done, total) is called after each tile.
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     return compress_map(points, _model(model), precision, progress=progress, refine_steps=refine_steps)

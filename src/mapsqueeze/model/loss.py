@@ -17,19 +17,25 @@ def _nearest(tree: KDTree, queries: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(idx.astype(np.int64)).to(queries.device)
 
 
+def _matched_squared_distances(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None
+                               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Squared distance of every output point to its nearest reference point, and of every reference point to its
+    nearest output point (neighbours from KD-trees, distances in torch so gradients flow)."""
+    if reference_tree is None:
+        reference_tree = _kdtree(reference)
+    out_to_ref = _nearest(reference_tree, output)
+    ref_to_out = _nearest(_kdtree(output), reference)
+    return ((output - reference[out_to_ref]) ** 2).sum(dim=1), ((reference - output[ref_to_out]) ** 2).sum(dim=1)
+
+
 def chamfer_loss(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None = None):
     """Symmetric Chamfer distance D_CD (eq. 6-7): mean squared NN distance each way, halved and summed.
 
     The nearest neighbours come from KD-trees (pykdtree); the squared distances are computed in torch, so gradients
     flow to `output` (and `reference` if it requires grad). Pass `reference_tree` to reuse a tree over `reference`.
     """
-    if reference_tree is None:
-        reference_tree = _kdtree(reference)
-    out_to_ref = _nearest(reference_tree, output)
-    ref_to_out = _nearest(_kdtree(output), reference)
-    d_out = ((output - reference[out_to_ref]) ** 2).sum(dim=1).mean()
-    d_ref = ((reference - output[ref_to_out]) ** 2).sum(dim=1).mean()
-    return 0.5 * d_out + 0.5 * d_ref
+    d_out, d_ref = _matched_squared_distances(reference, output, reference_tree)
+    return 0.5 * d_out.mean() + 0.5 * d_ref.mean()
 
 
 def depoco_loss(reference: torch.Tensor, output: torch.Tensor, intermediate: list[torch.Tensor],
@@ -47,11 +53,6 @@ def depoco_loss(reference: torch.Tensor, output: torch.Tensor, intermediate: lis
 def mean_distance_loss(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None = None):
     """Symmetric mean nearest-neighbour distance (not squared): D_e (eq. 9) of `output` against `reference`, in the
     units of the inputs, differentiable in both (KD-tree neighbours as in `chamfer_loss`)."""
-    if reference_tree is None:
-        reference_tree = _kdtree(reference)
-    out_to_ref = _nearest(reference_tree, output)
-    ref_to_out = _nearest(_kdtree(output), reference)
+    d_out, d_ref = _matched_squared_distances(reference, output, reference_tree)
     eps = 1e-12  # keeps the gradient of sqrt finite where a point sits exactly on its neighbour
-    d_out = (((output - reference[out_to_ref]) ** 2).sum(dim=1) + eps).sqrt().mean()
-    d_ref = (((reference - output[ref_to_out]) ** 2).sum(dim=1) + eps).sqrt().mean()
-    return 0.5 * d_out + 0.5 * d_ref
+    return 0.5 * (d_out + eps).sqrt().mean() + 0.5 * (d_ref + eps).sqrt().mean()
