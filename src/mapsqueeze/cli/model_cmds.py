@@ -95,7 +95,7 @@ def models_cmd():
     from mapsqueeze.model.checkpoint import SHIPPED_DIR
 
     table = Table(title="shipped models")
-    for col in ("name", "r_s (m)", "upsampling", "val Chamfer (m^2)", "training"):
+    for col in ("name", "r_s (m)", "upsampling", "val Chamfer (m^2)", "last training run (history: model card)"):
         table.add_column(col)
     for name in shipped_models():
         network, _ = load_network(SHIPPED_DIR / name)

@@ -20,12 +20,15 @@ def _nearest(tree: KDTree, queries: torch.Tensor) -> torch.Tensor:
 def _matched_squared_distances(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None
                                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Squared distance of every output point to its nearest reference point, and of every reference point to its
-    nearest output point (neighbours from KD-trees, distances in torch so gradients flow)."""
+    nearest output point (neighbours from KD-trees, distances in torch so gradients flow). The gathers are
+    `index_select`s: their backward (`index_add_`) sums repeated indices in a fixed order on the CPU, where that of
+    `tensor[indices]` (`index_put_` with accumulate) depends on the threads."""
     if reference_tree is None:
         reference_tree = _kdtree(reference)
     out_to_ref = _nearest(reference_tree, output)
     ref_to_out = _nearest(_kdtree(output), reference)
-    return ((output - reference[out_to_ref]) ** 2).sum(dim=1), ((reference - output[ref_to_out]) ** 2).sum(dim=1)
+    return (((output - reference.index_select(0, out_to_ref)) ** 2).sum(dim=1),
+            ((reference - output.index_select(0, ref_to_out)) ** 2).sum(dim=1))
 
 
 def chamfer_loss(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None = None):
