@@ -113,3 +113,18 @@ def test_per_cloud_comparison_against_any_front():
     assert table[-3].startswith("| a | e0,q | 0.2000 | 0.3000 | 0.2048 | +46.5% | 0.2048 | +46.5% |")
     assert "outside its bpp range" in table[-2] and "outside its bpp range" in table[-1]
     assert reference_comparison([r for r in rows if r.codec != "depoco-ref"]) == []
+
+
+def test_size_band_comparison_groups_clouds_by_point_count():
+    from mapsqueeze.bench import Row, size_band_comparison
+
+    def row(cloud, n_points, d_e):
+        return Row(cloud, "mapsqueeze", "e1,q", n_points, 100, 0.8, d_e, d_e, 0.5, n_points, 0.1, 0.1)
+
+    comparison = [(row("sparse", 12_000, 0.15), 0.10), (row("scan", 30_000, 0.08), 0.10),
+                  (row("map_a", 90_000, 0.05), 0.10), (row("map_b", 200_000, 0.07), 0.10),
+                  (row("off_front", 200_000, 0.01), float("nan"))]
+    table = size_band_comparison(comparison)
+    assert table[3] == "| codec | setting | 0 - 20,000 points | 20,000 - 50,000 points | >= 50,000 points |"
+    assert table[5] == "| mapsqueeze | e1,q | +50.0% (0 / 1) | -20.0% (1 / 1) | -40.0% (2 / 2) |"
+    assert size_band_comparison(comparison[-1:]) == []

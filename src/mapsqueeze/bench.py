@@ -20,6 +20,9 @@ REFERENCE_DIR = Path(__file__).resolve().parents[3] / "shared" / "reference" / "
 
 CLASSICAL = ("draco", "octree", "octree-ac", "gpcc")
 PER_CLOUD_PLOTS_UP_TO = 6  # benchmarks of at most this many clouds also get one rd_<cloud>.png per cloud
+SIZE_BANDS = (20_000, 50_000)
+"""Cloud sizes (points) separating the bands of `size_band_comparison`: a 40 m submap of one 32-beam sweep has
+~12k points, one 64/128-beam scan 30-60k, an aggregated map 50-250k."""
 
 
 @dataclass
@@ -280,6 +283,7 @@ def write_results(rows: list[Row], out_dir: Path, per_cloud_plots: bool = True) 
     for r, reference in comparison:
         lines.append(f"| {r.cloud} | {r.codec} | {r.setting} | {r.bpp:.4f} | {r.d_e:.4f} | {reference:.4f} | "
                      f"{'outside front' if np.isnan(reference) else 'yes' if r.d_e < reference else 'no'} |")
+    lines += size_band_comparison(comparison)
     lines += reference_comparison(rows)
     with atomic_output(out_dir / "results.md") as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
@@ -288,6 +292,28 @@ def write_results(rows: list[Row], out_dir: Path, per_cloud_plots: bool = True) 
     if per_cloud_plots and len(clouds) <= PER_CLOUD_PLOTS_UP_TO:
         for cloud in clouds:
             plot_rd(summarise([r for r in rows if r.cloud == cloud]), out_dir / f"rd_{Path(cloud).name}.png", cloud)
+
+
+def size_band_comparison(comparison: list[tuple[Row, float]]) -> list[str]:
+    """Markdown lines: each learned setting's mean D_e change against the classical front, and its wins, per band
+    of cloud size (SIZE_BANDS; sparse clouds are where the learned codecs lose)."""
+    edges = (0, *SIZE_BANDS, np.inf)
+    bands = [f"{lo:,} - {hi:,}" if np.isfinite(hi) else f">= {lo:,}" for lo, hi in zip(edges, edges[1:])]
+    changes: dict[tuple[str, str], list[list[float]]] = {}
+    for r, reference in comparison:
+        if not np.isnan(reference):
+            band = int(np.searchsorted(SIZE_BANDS, r.n_points, side="right"))
+            changes.setdefault((r.codec, r.setting), [[] for _ in bands])[band].append(r.d_e / reference - 1)
+    if not changes:
+        return []
+    lines = ["", "By cloud size: mean D_e change against the classical front at the same bpp (clouds better / "
+             "clouds) per band of points in the cloud.", "",
+             "| codec | setting | " + " | ".join(f"{band} points" for band in bands) + " |",
+             "|---" * (2 + len(bands)) + "|"]
+    for (codec, setting), per_band in sorted(changes.items()):
+        cells = [f"{np.mean(c):+.1%} ({sum(v < 0 for v in c)} / {len(c)})" if c else "" for c in per_band]
+        lines.append(f"| {codec} | {setting} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def reference_comparison(rows: list[Row]) -> list[str]:
