@@ -146,6 +146,8 @@ def test_bad_configurations_are_simulation_errors():
         SimulationConfig(n_submaps=0)
     with pytest.raises(SimulationError):
         SimulationConfig(n_submaps=1, scans_per_submap=(5, 2))
+    with pytest.raises(SimulationError, match="unknown split 'training'"):
+        SimulationConfig(n_submaps=1, split="training")
 
 
 # --- whole pipeline ---------------------------------------------------------------------------------------------
@@ -200,6 +202,13 @@ def test_simulated_dataset_reads_back_and_does_not_depend_on_workers(tmp_path):
     simulate_dataset(tmp_path / "sim2", config, workers=2)
     for path in sorted((tmp_path / "sim").iterdir()):
         assert path.read_bytes() == (tmp_path / "sim2" / path.name).read_bytes(), path.name
+    # another seed simulated into the same dataset adds its submaps, here all forced into one split
+    simulate_dataset(tmp_path / "sim", dataclasses.replace(config, n_submaps=1, seed=4, split="test"))
+    grown = read_dataset(tmp_path / "sim")
+    assert [(r.source, r.split) for r in grown.records] == [("sim3-00000-highway-hdl32", "train"),
+                                                             ("sim3-00001-highway-hdl32", "train"),
+                                                             ("sim4-00000-highway-hdl32", "test")]
+    np.testing.assert_array_equal(grown.records[0].local_points(), dataset.records[0].local_points())
 
 
 def test_cli_rejects_unknown_sensor_with_one_error_line(monkeypatch, capsys, tmp_path):

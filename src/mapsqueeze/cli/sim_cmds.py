@@ -40,6 +40,9 @@ def simulate(
     scans: str = typer.Option("1-100", "--scans", help="Scans aggregated per submap: MIN-MAX (log-uniform) or N."),
     per_scene: int = typer.Option(5, "--per-scene", min=1, help="Submaps (15 m apart) per simulated scene."),
     workers: int = typer.Option(1, "--workers", min=1, help="Worker processes (scenes run in parallel)."),
+    split: str = typer.Option("", "--split", help="Put every submap in this split (train, val or test); default: "
+                              "every 10th scene to val, the rest to train. Simulating into an existing dataset "
+                              "with another seed adds to it."),
 ) -> None:
     """Simulate LiDAR maps of procedural driving scenes and store them as a submap dataset.
 
@@ -51,7 +54,7 @@ def simulate(
         raise SimulationError(f"{out_dir}: exists and is not a directory")
     config = SimulationConfig(n_submaps=submaps, sensors=_names(sensor, "--sensor"),
                               presets=_names(preset, "--preset"), seed=seed, submaps_per_scene=per_scene,
-                              scans_per_submap=_scan_range(scans))
+                              scans_per_submap=_scan_range(scans), split=split)
     console = Console(stderr=True)
     start = time.perf_counter()
     columns = (TextColumn("simulating"), BarColumn(), MofNCompleteColumn(), TextColumn("submaps"),

@@ -20,6 +20,7 @@ import numpy as np
 
 from mapsqueeze.data.mapping import (
     MAX_RANGE_M,
+    SPLITS,
     VALIDATION_EVERY,
     Submap,
     aggregate_map,
@@ -55,6 +56,7 @@ class SimulationConfig:
     strides: tuple[int, ...] = (1, 1, 2, 3, 5, 10)  # scan subsampling at 10 Hz, drawn uniformly (then capped)
     pose_noise: bool = True  # aggregate with slightly wrong poses, like estimated (KISS-ICP / SLAM) ones
     stops: bool = True  # the car sometimes stops (traffic lights): many scans from one place
+    split: str = ""  # one split for every submap (train / val / test); empty: every 10th scene to val
 
     def __post_init__(self) -> None:
         if self.n_submaps < 1:
@@ -66,6 +68,8 @@ class SimulationConfig:
             raise SimulationError(f"scans per submap must be 1 <= min <= max, got {self.scans_per_submap}")
         if not self.sensors or not self.presets:
             raise SimulationError("give at least one sensor and one preset")
+        if self.split and self.split not in SPLITS:
+            raise SimulationError(f"unknown split {self.split!r} (one of {', '.join(SPLITS)})")
         for name in self.sensors:
             get_sensor(name)
         for name in self.presets:
@@ -189,7 +193,7 @@ def simulate_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     low, high = config.scans_per_submap
     cache: dict[int, np.ndarray] = {}
     source = f"sim{config.seed}-{scene_index:05d}-{preset}-{sensor_name}"
-    split = "val" if scene_index % VALIDATION_EVERY == VALIDATION_EVERY - 1 else "train"
+    split = config.split or ("val" if scene_index % VALIDATION_EVERY == VALIDATION_EVERY - 1 else "train")
     submaps, drawn = [], []
     for number, key in enumerate(keys):
         n_scans = int(np.exp(rng.uniform(np.log(low), np.log(high + 1))))
