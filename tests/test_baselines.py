@@ -381,7 +381,8 @@ def test_distortion_at_interpolates_in_log_bpp():
     assert distortion_at(RATES, ERRORS, math.sqrt(2)) == pytest.approx(0.4)  # halfway between 1 and 2 in log
     assert distortion_at(RATES, ERRORS, 2 * 2**0.25) == pytest.approx(0.3 - 0.1 / 4)
     np.testing.assert_allclose(distortion_at(RATES, ERRORS, [0.5, 4.0]), [0.9, 0.2])
-    assert np.isnan(distortion_at(RATES, ERRORS, [0.25, 8.0, 0.0])).all()  # outside the front: no extrapolation
+    assert distortion_at(RATES, ERRORS, 8.0) == pytest.approx(0.2)  # 8 bpp measured (0.25, dominated): front holds 0.2
+    assert np.isnan(distortion_at(RATES, ERRORS, [0.25, 8.5, 0.0])).all()  # outside the measured rates: no extrapolation
 
 
 @pytest.mark.parametrize(

@@ -33,7 +33,8 @@ def pareto_front(bpp, distortion) -> np.ndarray:
 def distortion_at(bpp, distortion, query_bpp) -> np.ndarray:
     """Distortion of the Pareto front of (bpp, distortion) at `query_bpp` (scalar or array), linear in log(bpp).
 
-    NaN where `query_bpp` lies outside the front's bpp range (no extrapolation).
+    Between the front's last point and the highest measured bpp (dominated settings) the front holds its lowest
+    distortion; NaN below the lowest and above the highest measured bpp (no extrapolation).
     """
     rates, errors = _checked_pairs(bpp, distortion)
     front = pareto_front(rates, errors)
@@ -41,4 +42,4 @@ def distortion_at(bpp, distortion, query_bpp) -> np.ndarray:
     log_query = np.log(np.where(query > 0, query, np.nan))
     log_front = np.log(rates[front])
     result = np.interp(log_query, log_front, errors[front])
-    return np.where((log_query >= log_front[0]) & (log_query <= log_front[-1]), result, np.nan)
+    return np.where((log_query >= log_front[0]) & (log_query <= np.log(rates.max())), result, np.nan)
