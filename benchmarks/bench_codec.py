@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS
+from mapsqueeze.shared import real_submaps_dir
 
-KITTI_SUBMAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "submaps" / "kitti_hdl64_6scans.ply"
+KITTI_SUBMAP = real_submaps_dir() / "kitti_hdl64_6scans.ply"
 UTM_OFFSET = np.array([500_000.0, 4_000_000.0, 50.0])  # on the 40 x 40 x 15 m tile grid (z tile 45-60 m)
 CORES = 2
 

@@ -7,15 +7,15 @@ Wall and CPU seconds are the median over the repeats; CPU counts every core (cKD
 import argparse
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 
 from mapsqueeze.geometry.normals import normals_pca
 from mapsqueeze.io import read_points
 from mapsqueeze.metrics import evaluate
+from mapsqueeze.shared import real_submaps_dir
 
-KITTI_SUBMAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "submaps" / "kitti_hdl64_6scans.ply"
+KITTI_SUBMAP = real_submaps_dir() / "kitti_hdl64_6scans.ply"
 SPACING_M = 0.1  # the paper's 10 cm voxel-filtered map density
 NOISE_M = 0.01
 

@@ -2,13 +2,12 @@
 training step < 1.5 s, peak training memory < 6 GB for a 40 m submap with 30k input points at r_s = 3.0 m).
 
     .venv/bin/python benchmarks/bench_model.py [--rate e0] [--repeats 5] [--threads 2]
-Uses the real KITTI submap from ../shared when present, else a synthetic street patch.
+Uses the real KITTI submap from the shared folder (mapsqueeze.shared) when present, else a synthetic street patch.
 """
 
 import argparse
 import resource
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -16,8 +15,9 @@ import torch
 from mapsqueeze.model import ModelConfig, build_model
 from mapsqueeze.model.autoencoder import CompressionModel
 from mapsqueeze.model.loss import depoco_loss
+from mapsqueeze.shared import real_submaps_dir
 
-REAL = Path(__file__).resolve().parents[2] / "shared/data/real/submaps/kitti_hdl64_6scans.ply"
+REAL = real_submaps_dir() / "kitti_hdl64_6scans.ply"
 
 
 def load_cloud(n: int) -> tuple[np.ndarray, str]:

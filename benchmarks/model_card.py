@@ -1,6 +1,6 @@
 """Write MODEL_CARD.md for a shipped model: training provenance from its config plus bpp / D_e / D_perp / IoU of
 the full codec (q precision; the paper's encoder and 20 steps of encode-time refinement) on each real submap in
-../shared/data/real/submaps.
+the shared folder's data/real/submaps (see mapsqueeze.shared).
 
     .venv/bin/python benchmarks/model_card.py e1 [--log runs/e1/log.csv] [--provenance runs/e1/PROVENANCE.md]
 """
@@ -13,8 +13,8 @@ from mapsqueeze.io import atomic_write_bytes, read_points
 from mapsqueeze.metrics import evaluate
 from mapsqueeze.model import load_model
 from mapsqueeze.model.checkpoint import SHIPPED_DIR
+from mapsqueeze.shared import real_submaps_dir
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "submaps"
 REFINE_STEPS = (0, 20)  # the paper's encoder, and `compress --refine 20`
 
 
@@ -40,7 +40,7 @@ def main():
     lines += ["## Real submaps (full codec, precision q)", "",
               "| submap | points | encoding | bytes | bpp | D_e (m) | D_perp (m) | IoU |",
               "|---|---|---|---|---|---|---|---|"]
-    for path in sorted(REAL.glob("*.ply")):
+    for path in sorted(real_submaps_dir().glob("*.ply")):
         gt = read_points(path)
         for steps in REFINE_STEPS:
             data = compress(gt, model=model, refine_steps=steps)

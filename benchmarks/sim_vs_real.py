@@ -1,4 +1,4 @@
-"""Statistics of simulated submaps next to the real ones in ../shared/data/real/submaps.
+"""Statistics of simulated submaps next to the real ones in the shared folder's data/real/submaps.
 
 For each real submap, simulated submaps are made under the same conditions (sensor, number of aggregated
 scans, consecutive 10 Hz scans) in several scenes of the given presets, and both are described by: points per
@@ -19,8 +19,8 @@ from scipy.spatial import cKDTree
 
 from mapsqueeze.data.simulator import Raycaster, SimulationConfig, build_scene, iter_scenes
 from mapsqueeze.io import read_points
+from mapsqueeze.shared import real_submaps_dir
 
-REAL_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "submaps"
 REAL = {  # file stem -> (sensor, scans aggregated)
     "kitti_hdl64_6scans": ("hdl64", 6),
     "nuscenes_hdl32_1scan": ("hdl32", 1),
@@ -183,7 +183,7 @@ def render_scene(path: Path, preset: str, seed: int) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--real", type=Path, default=REAL_DIR)
+    parser.add_argument("--real", type=Path, default=real_submaps_dir())
     parser.add_argument("--per-real", type=int, default=8, help="simulated submaps per real one")
     parser.add_argument("--presets", default="urban,suburban")
     parser.add_argument("--seed", type=int, default=0)

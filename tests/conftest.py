@@ -1,27 +1,71 @@
-"""Shared fixtures: location of ../shared (real data, reference checkpoints), skipped when absent."""
+"""Shared fixtures: the shared material (real data, reference checkpoints, tmc3) through mapsqueeze.shared.
 
+Missing material skips the tests that need it, or fails them when MAPSQUEEZE_REQUIRE_SHARED=1 (as in CI), so a
+clone without the shared folder cannot pass its reference tests silently.
+"""
+
+import os
 from pathlib import Path
 
 import pytest
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-REAL_SUBMAPS = SHARED / "data" / "real" / "submaps"
-REFERENCE = SHARED / "reference" / "depoco"
+from mapsqueeze.shared import SHARED_ENV, real_data_dir, real_submaps_dir, reference_checkpoints_dir, tmc3_executable
+
+REQUIRE_SHARED_ENV = "MAPSQUEEZE_REQUIRE_SHARED"
+
+
+def missing_shared(what: str) -> None:
+    """Skip the calling test because `what` is absent, or fail it when the shared material is required."""
+    message = f"{what} absent (set {SHARED_ENV} to the shared folder)"
+    if os.environ.get(REQUIRE_SHARED_ENV) == "1":
+        pytest.fail(f"{message}; {REQUIRE_SHARED_ENV}=1 requires it")
+    pytest.skip(message)
 
 
 @pytest.fixture
-def reference_dir():
-    """Folder of the reference checkpoints (e0..e3, golden/); skips the test when ../shared is absent."""
-    if not (REFERENCE / "e0" / "enc_best.pth").is_file():
-        pytest.skip("reference checkpoints not available (../shared/reference/depoco)")
-    return REFERENCE
+def shared_file():
+    """shared_file(path) -> path when it exists, else skip (or fail when the shared material is required)."""
+
+    def require(path: Path) -> Path:
+        if not path.exists():
+            missing_shared(str(path))
+        return path
+
+    return require
 
 
 @pytest.fixture
-def real_submaps():
-    if not REAL_SUBMAPS.is_dir():
-        pytest.skip("real submaps not available (../shared/data/real/submaps)")
-    return REAL_SUBMAPS
+def real_data(shared_file):
+    """Folder of the real scans and submaps (shared/data/real)."""
+    return shared_file(real_data_dir())
+
+
+@pytest.fixture
+def reference_dir(shared_file):
+    """Folder of the reference checkpoints (e0..e3, golden/)."""
+    shared_file(reference_checkpoints_dir() / "e0" / "enc_best.pth")
+    return reference_checkpoints_dir()
+
+
+@pytest.fixture
+def real_submaps(shared_file):
+    """Folder of the real 40 m submaps."""
+    return shared_file(real_submaps_dir())
+
+
+@pytest.fixture
+def kitti_submap(shared_file):
+    """The real KITTI submap of six HDL-64E scans (101,924 points)."""
+    return shared_file(real_submaps_dir() / "kitti_hdl64_6scans.ply")
+
+
+@pytest.fixture
+def tmc3():
+    """Path of the real MPEG G-PCC encoder `tmc3`."""
+    executable = tmc3_executable()
+    if executable is None:
+        missing_shared("the MPEG G-PCC encoder tmc3")
+    return executable
 
 
 @pytest.fixture

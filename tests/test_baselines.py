@@ -2,7 +2,6 @@
 
 import json
 import math
-import shutil
 import struct
 import sys
 import zlib
@@ -349,9 +348,8 @@ def test_gpcc_bad_header_raises_container_error(fake_tmc3, map_points):
         GpccCodec().decode(nan_origin)
 
 
-@pytest.mark.skipif(shutil.which("tmc3") is None, reason="the real MPEG tmc3 is not on PATH")
-def test_real_tmc3_round_trip(map_points):
-    codec = GpccCodec()
+def test_real_tmc3_round_trip(tmc3, map_points):
+    codec = GpccCodec(executable=tmc3)
     sizes = []
     for cell in (0.1, 0.4):
         setting = {"mode": "octree", "cell_m": cell}

@@ -27,9 +27,6 @@ from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.geometry.voxel import VoxelAccumulator, pack_indices, voxel_filter, voxel_indices
 from mapsqueeze.io import read_points, write_points
 
-REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-KITTI_SCANS = REAL_DATA / "kitti_seq00_scans"
-KITTI_SUBMAP = REAL_DATA / "submaps" / "kitti_hdl64_6scans.ply"
 KITTI_SUBMAP_POINTS = 101_924
 UTM_OFFSET_M = np.array([500000.123, 4000000.456, 50.0])
 
@@ -236,14 +233,12 @@ def test_build_submaps_matches_brute_force_crop():
     assert build_submaps(world, poses, "kitti-08")[0].split == "test"
 
 
-def test_real_kitti_scans_give_the_reference_submap():
-    if not KITTI_SUBMAP.is_file():
-        pytest.skip("../shared real data absent")
-    (sequence,) = open_sequences(KITTI_SCANS)
+def test_real_kitti_scans_give_the_reference_submap(real_data, kitti_submap):
+    (sequence,) = open_sequences(real_data / "kitti_seq00_scans")
     world = aggregate_map(sequence.scans())
     middle = sequence.poses[len(sequence) // 2, :3, 3]
     submap = crop_submap(world, middle, dz=0.0) - middle  # the reference box is centred on the middle pose
-    reference = read_points(KITTI_SUBMAP)
+    reference = read_points(kitti_submap)
     assert abs(len(submap) - KITTI_SUBMAP_POINTS) < 0.02 * KITTI_SUBMAP_POINTS  # measured: 101,585
     assert np.all(submap.min(axis=0) >= [-20.0, -20.0, -7.5]) and np.all(submap.max(axis=0) < [20.0, 20.0, 7.5])
     assert np.abs(submap.min(axis=0) - reference.min(axis=0)).max() < 0.1
@@ -251,14 +246,13 @@ def test_real_kitti_scans_give_the_reference_submap():
     assert np.median(cKDTree(reference).query(submap)[0]) < 0.05  # same surfaces, 10 cm voxels
 
 
-def test_real_kitti_poses_estimated_with_kiss_icp():
+def test_real_kitti_poses_estimated_with_kiss_icp(real_data):
     pytest.importorskip("kiss_icp")
-    if not KITTI_SCANS.is_dir():
-        pytest.skip("../shared real data absent")
-    (sequence,) = open_sequences(KITTI_SCANS)
+    kitti_scans = real_data / "kitti_seq00_scans"
+    (sequence,) = open_sequences(kitti_scans)
     estimated = estimate_poses(sequence)
     # the shared poses were made by KISS-ICP too; the trajectory moves ~3.6 m forward
-    np.testing.assert_allclose(estimated, read_poses(KITTI_SCANS / "poses_lidar_kissicp.txt"), atol=1e-4)
+    np.testing.assert_allclose(estimated, read_poses(kitti_scans / "poses_lidar_kissicp.txt"), atol=1e-4)
 
 
 # --- datasets -------------------------------------------------------------------------------------------------

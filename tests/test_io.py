@@ -1,4 +1,4 @@
-"""Point-cloud I/O: round trips of every format, precision, real files from ../shared, typed errors, CLI."""
+"""Point-cloud I/O: round trips of every format, precision, real files from the shared folder, typed errors, CLI."""
 
 import os
 import subprocess
@@ -24,7 +24,6 @@ from mapsqueeze.io import (
     write_points,
 )
 
-REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 NUSCENES_SWEEP = "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
 UTM_OFFSET_M = np.array([500000.123, 4000000.456, 50.0])
 LAS_ERROR_M = LAS_SCALE_M / 2 + 1e-9  # rounding to the grid, plus float64 slack at UTM magnitudes
@@ -186,10 +185,8 @@ REAL_FILES = [
 
 
 @pytest.mark.parametrize(("relative", "expected_count", "expected_attributes"), REAL_FILES)
-def test_real_files_read_plausibly(relative, expected_count, expected_attributes):
-    path = REAL_DATA / relative
-    if not path.exists():
-        pytest.skip(f"{path} absent (../shared not available)")
+def test_real_files_read_plausibly(real_data, shared_file, relative, expected_count, expected_attributes):
+    path = shared_file(real_data / relative)
     cloud = read_point_cloud(path)
     assert len(cloud) == expected_count
     assert set(cloud.attributes) == expected_attributes

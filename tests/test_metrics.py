@@ -11,8 +11,6 @@ from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.normals import normals_pca
 from mapsqueeze.metrics import bits_per_point, chamfer_distance, d_euclidean, d_point_to_plane, evaluate, iou
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-KITTI_SUBMAP = SHARED / "data" / "real" / "submaps" / "kitti_hdl64_6scans.ply"
 UTM_OFFSET = np.array([456_789.0, 5_432_101.0, 42.0])  # world coordinates as large as real maps have
 SPACING = 0.1
 SIDE = 30
@@ -183,10 +181,8 @@ def test_cli_eval_missing_file_is_one_error_line(run_cli, cloud_files, tmp_path)
     assert len(lines) == 1 and lines[0].startswith("error:") and "missing.ply" in lines[0]
 
 
-def test_real_kitti_ground_normals_are_vertical():
-    if not KITTI_SUBMAP.exists():
-        pytest.skip(f"real submap not available at {KITTI_SUBMAP}")
-    vertex = PlyData.read(str(KITTI_SUBMAP))["vertex"]
+def test_real_kitti_ground_normals_are_vertical(kitti_submap):
+    vertex = PlyData.read(str(kitti_submap))["vertex"]
     points = np.column_stack([vertex["x"], vertex["y"], vertex["z"]]).astype(np.float64)
     normals = normals_pca(points)
     assert np.isfinite(normals).all()

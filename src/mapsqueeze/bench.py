@@ -14,9 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mapsqueeze.errors import MapsqueezeError
-
-REFERENCE_DIR = Path(__file__).resolve().parents[3] / "shared" / "reference" / "depoco"
-"""The reference checkpoints when the project sits beside ../shared (used by the `depoco-ref` codec)."""
+from mapsqueeze.shared import reference_checkpoints_dir
 
 CLASSICAL = ("draco", "octree", "octree-ac", "gpcc")
 PER_CLOUD_PLOTS_UP_TO = 6  # benchmarks of at most this many clouds also get one rd_<cloud>.png per cloud
@@ -136,9 +134,10 @@ def build_variants(codecs: list[str], models: list[str], precision: str, log: Ca
             for steps in refine:
                 variants += _learned_variants(codec, loaded, precision, steps)
         elif codec == "depoco-ref":
-            refs = sorted(p for p in REFERENCE_DIR.glob("e[0-3]") if (p / "enc_best.pth").is_file())
+            reference_dir = reference_checkpoints_dir()
+            refs = sorted(p for p in reference_dir.glob("e[0-3]") if (p / "enc_best.pth").is_file())
             if not refs:
-                log(f"depoco-ref: reference checkpoints not found in {REFERENCE_DIR} (skipped)")
+                log(f"depoco-ref: reference checkpoints not found in {reference_dir} (skipped)")
             loaded = {}
             for p in refs:
                 network = import_reference(p)

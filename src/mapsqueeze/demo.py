@@ -1,5 +1,5 @@
-"""The README's main job: compress and decompress a simulated map (and the real KITTI submap when ../shared is
-present) with a shipped model, and report size, bpp, D_e, D_perp and IoU."""
+"""The README's main job: compress and decompress a simulated map (and the real KITTI submap when the shared folder
+is present, see mapsqueeze.shared) with a shipped model, and report size, bpp, D_e, D_perp and IoU."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-REAL_SUBMAP = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "submaps" / "kitti_hdl64_6scans.ply"
+from mapsqueeze.shared import real_submaps_dir
+
 UTM_OFFSET_M = np.array([500000.123, 5600000.456, 110.0])
 """The demo map is placed at UTM-sized coordinates to exercise the float64 tile origins."""
 
@@ -68,13 +69,14 @@ def run_demo(model_name: str, out_dir: Path, progress=print, refine_steps: int =
     sim = simulated_map()
     write_points(out_dir / "simulated_map.ply", sim)
     results = [run_case("simulated_map", sim, model, out_dir)]
-    if REAL_SUBMAP.is_file():
-        kitti = read_points(REAL_SUBMAP)
+    real_submap = real_submaps_dir() / "kitti_hdl64_6scans.ply"
+    if real_submap.is_file():
+        kitti = read_points(real_submap)
         results.append(run_case("kitti_hdl64_6scans", kitti, model, out_dir))
         if refine_steps:
             progress(f"KITTI submap again with {refine_steps} refinement steps ...")
             results.append(run_case(f"kitti_refine{refine_steps}", kitti, model, out_dir,
                                     refine_steps))
     else:
-        progress(f"{REAL_SUBMAP} not found: real-data case skipped")
+        progress(f"{real_submap} not found: real-data case skipped")
     return results

@@ -22,7 +22,7 @@ def demo_cmd(
                                help="Also compress the KITTI submap with this many encode-time refinement steps "
                                     "(0: skip)"),
 ):
-    """Compress and decompress a simulated map (and the real KITTI submap when ../shared is present)."""
+    """Compress and decompress a simulated map (and the real KITTI submap when the shared folder is present)."""
     from mapsqueeze.demo import run_demo
 
     results = run_demo(model, out, progress=lambda m: console.print(f"[dim]{m}"), refine_steps=refine)
