@@ -4,7 +4,7 @@ D_e (eq. 9) is half the mean distance from each ground-truth point to the recons
 map the decoder misses or thins out) plus half the mean from each reconstructed point to the ground truth
 (precision: points grown where there is no surface). Rows per cloud, each a way to bring the decoder's native
 output down to the input's point count:
-- "random subset": uniformly random (the codec until session 5);
+- "random subset": uniformly random;
 - "spread subset (codec)": every (K / n)-th point along a Morton order, which keeps the decoder's density;
 - "voxel subset": one point per voxel, the edge bisected to keep the count (the most even subset, density-blind);
 - "oracle, ...": each embedding point decoded with as many points as the input had nearest to it (exact, or rounded

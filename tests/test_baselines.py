@@ -396,7 +396,7 @@ def test_rd_rejects_bad_input(rates, errors):
     (OctreeAcCodec, "339defea60e8fa5b21dcc331f0f8e1e00f698717df6103453639b135b73b403b"),
 ])
 def test_octree_bitstreams_are_pinned(codec, digest):
-    """Encoder output and decoded points of a fixed cloud must not drift (digests of the session-4 code)."""
+    """Encoder output and decoded points of a fixed cloud must not drift: pinned digests, changed only with a format."""
     import hashlib
 
     rng = np.random.default_rng(5)

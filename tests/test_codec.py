@@ -445,7 +445,7 @@ def test_decompress_file_refuses_an_unknown_output_format_before_decoding(compre
 
 
 def test_raw_tile_payload_bytes_are_pinned():
-    """The raw payload format must not drift (digest of the session-4 encoder, before the shared Morton module)."""
+    """The raw payload format must not drift: a pinned digest, to be changed only with the format."""
     import hashlib
 
     points = (np.random.default_rng(5).random((3000, 3)) * [40, 40, 15]).astype(np.float32)
