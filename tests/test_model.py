@@ -224,6 +224,22 @@ def test_config_json_round_trip():
 
 # --- faithfulness: the reference checkpoints reproduce their golden outputs in this code -----------------------
 
+# Embedding-feature difference |ours - golden| over all n_emb x 3 values: (mean, 99th percentile, max) bounds.
+# Measured (mean / p99 / max): e0 0.042 / 0.235 / 0.654, e1 0.036 / 0.216 / 0.466, e2 0.041 / 0.382 / 1.268,
+# e3 0.021 / 0.158 / 0.245 (feature std ~1.2). The embedding points are identical; the features differ because the
+# first two encoder blocks cap the in-radius neighbours (70 / 50) of 90 % of their queries, and we take the evenly
+# spread subset in our search cells' scan order where the reference takes it in its octree's order. A few embedding
+# points in dense areas collect those differences (e2: 15 of 993 differ by more than 0.5 in some channel); they
+# move the decoded cloud by centimetres and the end-to-end D_e by < 1.3 %. So the mean and the 99th percentile
+# are bounded tightly (a regression in the encoder moves them), the max loosely.
+FEATURE_DIFF_BOUNDS = {
+    "e0": (0.050, 0.28, 0.9),
+    "e1": (0.043, 0.26, 0.8),
+    "e2": (0.050, 0.45, 1.6),
+    "e3": (0.025, 0.19, 0.5),
+}
+
+
 @pytest.mark.parametrize("rate", ["e0", "e1", "e2", "e3"])
 def test_reference_decoder_and_encoder_reproduce_golden(reference_dir, rate):
     golden = np.load(reference_dir / "golden" / f"{rate}_kitti_hdl64_6scans.npz")
@@ -235,30 +251,41 @@ def test_reference_decoder_and_encoder_reproduce_golden(reference_dir, rate):
     assert decoded.shape == golden["decoded_points_normalized"].shape
     assert np.abs(decoded.numpy() - golden["decoded_points_normalized"]).max() < 1e-5
     assert np.array_equal(emb_points.half().float().numpy(), golden["embedding_points"])
-    # features differ slightly (neighbour order inside the capped subset); the README quotes 0.03-0.07 on average
-    assert np.abs(emb_features.half().float().numpy() - golden["embedding_features"]).mean() < 0.1
+    difference = np.abs(emb_features.half().float().numpy() - golden["embedding_features"])
+    mean_bound, p99_bound, max_bound = FEATURE_DIFF_BOUNDS[rate]
+    assert difference.mean() < mean_bound, difference.mean()
+    assert np.percentile(difference, 99) < p99_bound, np.percentile(difference, 99)
+    assert difference.max() < max_bound, difference.max()
 
 
-REFERENCE_DE_M = {"e0": 0.0926, "e1": 0.0782}
+REFERENCE_DE_M = {"e0": 0.0926, "e1": 0.0782, "e2": 0.0577, "e3": 0.0564}
+"""The reference's end-to-end D_e on the golden submap (golden/README.md), f16 embeddings."""
+MEASURED_DE_DEVIATION = {"e0": +0.0125, "e1": -0.0074, "e2": -0.0001, "e3": +0.0030}
+"""Our end-to-end D_e relative to REFERENCE_DE_M with this code (the feature differences above); pinned to +-0.4 %."""
 
 
-@pytest.mark.parametrize("rate", ["e0", "e1"])
-def test_reference_end_to_end_d_e_within_3_percent(reference_dir, real_submaps, rate, tmp_path):
+@pytest.mark.parametrize("rate", ["e0", "e1", "e2", "e3"])
+def test_reference_end_to_end_d_e_matches_golden(reference_dir, kitti_submap, rate, tmp_path):
     from mapsqueeze.io import read_points
     from mapsqueeze.metrics import d_euclidean
 
     golden = np.load(reference_dir / "golden" / f"{rate}_kitti_hdl64_6scans.npz")
-    full = read_points(real_submaps / "kitti_hdl64_6scans.ply")
+    full = read_points(kitti_submap)
     net = import_reference(reference_dir / rate)
     save_model(net, tmp_path / rate)
     model = load_model(tmp_path / rate)
     scale = float(golden["normalizer_scale"])
     origin = golden["normalizer_min"].reshape(3)
+    # the golden embedding through our decoder and metric: the reference's D_e (measured within 0.03 %)
+    decoded = model.decode(golden["embedding_points"] * np.float32(scale), golden["embedding_features"])
+    d_e = d_euclidean(full, decoded.astype(np.float64) + origin)
+    assert abs(d_e / REFERENCE_DE_M[rate] - 1) < 0.001, d_e
+    # our encoder end to end, through the reference's float16 embeddings
     emb = model.encode(golden["input_points_normalized"] * np.float32(scale))
     decoded = model.decode(emb.points.astype(np.float16).astype(np.float32),
                            emb.features.astype(np.float16).astype(np.float32))
     d_e = d_euclidean(full, decoded.astype(np.float64) + origin)
-    assert abs(d_e - REFERENCE_DE_M[rate]) / REFERENCE_DE_M[rate] < 0.03, d_e
+    assert abs(d_e / REFERENCE_DE_M[rate] - 1 - MEASURED_DE_DEVIATION[rate]) < 0.004, d_e
 
 
 def test_import_depoco_cli(reference_dir, tmp_path):
