@@ -217,6 +217,27 @@ def test_round_trip_of_a_multi_tile_map(map_points, compressed, model):
     assert info.bits_per_point < 2.0
 
 
+def test_decoded_points_outside_a_tile_are_dropped_not_clamped_onto_its_faces(compressed, model):
+    """The network grows surfaces past a tile's box: those points go, the count comes from the ones inside."""
+    reader, stream = open_container(compressed)
+    with stream:
+        position = next(p for p, e in enumerate(reader.entries) if e.coding is TileCoding.network)
+        entry = reader.entries[position]
+        extent = entry.frame_extent_m(np.asarray(reader.header.tile_size)).astype(np.float32)
+        rng = np.random.default_rng(0)
+        inside = (rng.uniform(0.05, 0.95, (3000, 3)) * extent).astype(np.float32)
+        outside = inside[:1000] + np.float32(2.0) * extent  # beyond the upper faces
+
+        class GrownPastTheFaces:
+            def decode(self, points, features, n_points=None):
+                assert n_points is None  # the native output, cropped before resampling
+                return np.concatenate([inside, outside])
+
+        local = decompress_module.decode_tile(reader, position, GrownPastTheFaces(), 2000)
+    assert len(local) == 2000
+    assert cKDTree(inside).query(local)[0].max() == 0  # every point is one grown inside, none clamped onto a face
+
+
 def test_a_map_no_larger_than_a_tile_is_one_tile_wherever_it_lies(model):
     rng = np.random.default_rng(3)
     patch = np.column_stack([rng.uniform(0, 8, 3000), rng.uniform(0, 8, 3000), rng.normal(2.0, 0.05, 3000)])

@@ -86,7 +86,11 @@ def check_model(model, header: Header, name: str) -> None:
 
 
 def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np.ndarray:
-    """Tile `position` decoded to `count` float32 points relative to `tile_frame`, clamped into the tile's bounds."""
+    """Tile `position` decoded to `count` float32 points relative to `tile_frame`, all inside the tile's bounds.
+
+    The network grows surfaces past the tile's bounds box; those points are dropped (the neighbouring tile codes
+    that space) and the count is restored from the points inside (`keep_inside`), so tile faces show no seams.
+    """
     from mapsqueeze.model import resample_to_count
 
     header, entry = reader.header, reader.entries[position]
@@ -105,12 +109,23 @@ def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np
             else:
                 points, features = decode_float(payload, header.precision, tile_size, header.n_features,
                                                 entry.n_points, label)
-            local = model.decode(points, features, count)
+            local = resample_to_count(keep_inside(model.decode(points, features), entry.frame_extent_m(tile_size)),
+                                      count)
     except MapsqueezeError:
         raise
     except (ValueError, IndexError, OverflowError) as exc:
         raise ContainerError(f"{label}: undecodable payload ({exc})") from None
-    return np.clip(local, np.float32(0), entry.frame_extent_m(tile_size).astype(np.float32))
+    return local
+
+
+def keep_inside(cloud: np.ndarray, extent_m: np.ndarray) -> np.ndarray:
+    """The points of a decoded (K, 3) float32 tile cloud inside its bounds box [0, extent_m] (metres); when none
+    is (a degenerate decode), every point clamped into the box, so a tile never decodes to nothing."""
+    upper = np.asarray(extent_m).astype(np.float32)
+    inside = ((cloud >= 0) & (cloud <= upper)).all(axis=1)
+    if inside.any():
+        return cloud[inside]
+    return np.clip(cloud, np.float32(0), upper)
 
 
 def iter_decoded_tiles(
