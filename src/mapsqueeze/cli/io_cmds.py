@@ -6,7 +6,7 @@ import typer
 from rich.console import Console
 
 from mapsqueeze.cli.app import app
-from mapsqueeze.io import SUPPORTED_FORMATS, read_point_cloud, write_points
+from mapsqueeze.io import SUPPORTED_FORMATS, dropped_fields, read_point_cloud, write_points
 
 _FORMAT_HELP = f"one of {', '.join(SUPPORTED_FORMATS)} (default: from the extension)"
 
@@ -18,11 +18,17 @@ def convert(
     in_format: str | None = typer.Option(None, "--in-format", help=f"format of IN: {_FORMAT_HELP}"),
     out_format: str | None = typer.Option(None, "--out-format", help=f"format of OUT: {_FORMAT_HELP}"),
 ) -> None:
-    """Convert a point cloud between formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD, LAS/LAZ, .npy)."""
+    """Convert a point cloud between formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD, LAS/LAZ, .npy), keeping
+    every attribute and the LAS header's metadata the output format can hold."""
     cloud = read_point_cloud(input_path, format=in_format)
-    stored = write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes)
-    console = Console()
-    console.print(f"wrote {len(cloud):,} points to {output_path}")
-    dropped = [name for name in cloud.attributes if name not in stored]
+    write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
+    warn_dropped(cloud.attributes, output_path, out_format)
+    Console().print(f"wrote {len(cloud):,} points to {output_path}")
+
+
+def warn_dropped(names, output_path: Path, out_format: str | None = None) -> None:
+    """One warning line on stderr naming the attributes the output format cannot hold, if any."""
+    dropped = dropped_fields(names, output_path, out_format)
     if dropped:
-        console.print(f"attributes the output format cannot store, not written: {', '.join(dropped)}")
+        Console(stderr=True).print(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; "
+                                   "not written", highlight=False, soft_wrap=True)

@@ -1,17 +1,22 @@
 """Point-cloud file I/O: the only place that knows file formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD,
-LAS/LAZ, .npy). Points are (N, 3) float64 metres; see `formats` for each format's layout and precision."""
+LAS/LAZ, .npy). Points are (N, 3) float64 metres with named per-point attributes and file metadata (`PointCloud`); `formats` holds the
+table of formats, one module per family (tables, ply, pcd, las) their layouts and precision."""
 
 from mapsqueeze.io.atomic import atomic_output, atomic_write_bytes
 from mapsqueeze.io.formats import (
-    LAS_SCALE_M,
+    DEFAULT_CHUNK_POINTS,
+    FORMATS,
     SUPPORTED_FORMATS,
+    dropped_fields,
     format_name,
+    iter_point_clouds,
     iter_points,
     read_point_cloud,
     read_points,
     write_point_chunks,
     write_points,
 )
+from mapsqueeze.io.las import LAS_SCALE_M
 from mapsqueeze.io.pointcloud import (
     FLOAT32_MAX_ERROR_M,
     MAX_ABS_COORDINATE_M,
@@ -21,14 +26,18 @@ from mapsqueeze.io.pointcloud import (
 )
 
 __all__ = [
+    "DEFAULT_CHUNK_POINTS",
     "FLOAT32_MAX_ERROR_M",
+    "FORMATS",
     "LAS_SCALE_M",
     "MAX_ABS_COORDINATE_M",
     "SUPPORTED_FORMATS",
     "PointCloud",
     "atomic_output",
     "atomic_write_bytes",
+    "dropped_fields",
     "format_name",
+    "iter_point_clouds",
     "iter_points",
     "read_point_cloud",
     "read_points",

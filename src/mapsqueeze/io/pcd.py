@@ -5,15 +5,18 @@ DATA binary_compressed (LZF) is refused with a PointCloudFormatError.
 """
 
 import io
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from mapsqueeze.errors import PointCloudFormatError
+from mapsqueeze.io.atomic import atomic_output
 from mapsqueeze.io.pointcloud import (
     FLOAT32_MAX_ERROR_M,
+    ChunkSource,
+    CloudStats,
     PointCloud,
-    float32_error_m,
     split_columns,
     validate_points,
 )
@@ -105,6 +108,12 @@ def _parse_ascii(body: bytes, dtype: np.dtype, num_points: int, path: Path) -> n
     return records
 
 
+def pcd_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
+    """A PCD file is read whole: one chunk whatever chunk_points."""
+    cloud = read_pcd(path)
+    yield cloud if attributes else PointCloud(cloud.points)
+
+
 def read_pcd(path: Path) -> PointCloud:
     """Read a PCD file with DATA ascii or binary."""
     data = path.read_bytes()
@@ -149,16 +158,21 @@ def _format_spec(dtype: np.dtype) -> tuple[str, str, str]:
     return dtype.kind.upper(), str(dtype.itemsize), "%d"
 
 
-def write_pcd(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], encoding: str) -> tuple[str, ...]:
-    """Write PCD with DATA `encoding` ('binary' or 'ascii'); x, y, z as float32 unless that errs > 1 mm."""
-    xyz_code = "<f4" if float32_error_m(points) <= FLOAT32_MAX_ERROR_M else "<f8"
+def write_pcd(path: Path, chunks: ChunkSource, stats: CloudStats, encoding: str) -> tuple[str, ...]:
+    """Write PCD with DATA `encoding` ('binary' or 'ascii'), assembled in memory; x, y, z as float32 unless that
+    errs > 1 mm."""
+    xyz_code = "<f4" if stats.float32_error <= FLOAT32_MAX_ERROR_M else "<f8"
     layout = [(axis, xyz_code) for axis in ("x", "y", "z")]
-    layout += [(name, values.dtype.newbyteorder("<")) for name, values in attributes.items()]
-    records = np.empty(len(points), dtype=np.dtype(layout))
-    for column, axis in enumerate(("x", "y", "z")):
-        records[axis] = points[:, column]
-    for name, values in attributes.items():
-        records[name] = values
+    layout += [(name, dtype.newbyteorder("<")) for name, dtype in stats.dtypes.items()]
+    parts = []
+    for chunk in chunks():
+        part = np.empty(len(chunk), dtype=np.dtype(layout))
+        for column, axis in enumerate(("x", "y", "z")):
+            part[axis] = chunk.points[:, column]
+        for name, values in chunk.attributes.items():
+            part[name] = values
+        parts.append(part)
+    records = np.concatenate(parts)
     specs = [_format_spec(records.dtype[name]) for name in records.dtype.names]
     header = "\n".join(
         [
@@ -181,5 +195,6 @@ def write_pcd(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray],
         text = io.StringIO()
         np.savetxt(text, records, fmt=[fmt for _, _, fmt in specs])
         body = text.getvalue().encode("ascii")
-    path.write_bytes(header.encode("ascii") + b"\n" + body)
-    return tuple(attributes)
+    with atomic_output(path) as temp:
+        temp.write_bytes(header.encode("ascii") + b"\n" + body)
+    return tuple(stats.dtypes)

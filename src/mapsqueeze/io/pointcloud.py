@@ -1,6 +1,7 @@
 """The in-memory point cloud and the checks every reader and writer applies to it."""
 
 import re
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,13 +20,39 @@ _ATTRIBUTE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
 
 @dataclass
 class PointCloud:
-    """Points (N, 3) float64 in metres, with per-point attributes (each a 1-D array of length N)."""
+    """Points (N, 3) float64 in metres, per-point attributes (each a 1-D array of length N, its dtype kept) and
+    file metadata (JSON-serialisable; e.g. `las`: the LAS header's point format, scales, offsets, CRS records)."""
 
     points: np.ndarray
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.points)
+
+
+ChunkSource = Callable[[], Iterable[PointCloud]]
+"""Called once per pass, yields the same PointCloud chunks (same attribute names and dtypes) in the same order."""
+
+
+@dataclass(frozen=True)
+class CloudStats:
+    """What a writer needs before the first chunk: count, extent, float32 rounding error, attribute dtypes."""
+
+    n_points: int
+    lowest: np.ndarray
+    highest: np.ndarray
+    float32_error: float
+    dtypes: dict[str, np.dtype]
+    metadata: dict
+
+    def require_float32(self, label: str) -> None:
+        """Refuse a float32-only format when float32 would move points by more than FLOAT32_MAX_ERROR_M."""
+        if self.float32_error > FLOAT32_MAX_ERROR_M:
+            raise InvalidPointCloudError(
+                f"{label} stores float32 x, y, z, which would move points by up to {self.float32_error * 1e3:.1f} "
+                "mm; shift the cloud towards the origin or write .ply/.las"
+            )
 
 
 def validate_points(points, name: str = "point cloud") -> np.ndarray:

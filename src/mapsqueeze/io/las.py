@@ -1,0 +1,203 @@
+"""LAS/LAZ (laspy; LAZ through lazrs): every standard point field, extra-bytes dimensions and header metadata.
+
+Attributes read: the point format's standard fields `intensity`, `return_number`, `number_of_returns`,
+`classification`, `scan_angle_rank` (formats 0-5) or `scan_angle` (6-10), `user_data`, `point_source_id`, and where
+the format has them `gps_time`, `red`, `green`, `blue`, `nir`; then every extra-bytes dimension (scaled when it
+declares scales). The bit flags (synthetic, key-point, withheld, overlap, scan direction, edge of flight line,
+scanner channel) are not read. Metadata (`PointCloud.metadata["las"]`): version, point format, scales, offsets,
+system identifier, the VLRs and EVLRs other than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double
+params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions' descriptions, types, scales and offsets;
+`metadata["crs"]` is a readable summary (`EPSG:32632` from the GeoKeyDirectory, or the WKT).
+
+Writing: the point format is the metadata's when it holds every standard field given, else the first of 0, 1, 2,
+3, 6, 7, 8 that does; standard fields must fit their LAS type exactly. Scale and offset are the metadata's when
+the cloud fits them, else LAS_SCALE_M and the minimum rounded down to whole metres (error at most 0.05 mm; extent
+below 2^31 * 0.1 mm, about 214 km, per axis). Other attributes become extra-bytes dimensions of their own dtype.
+"""
+
+import base64
+from collections.abc import Iterator
+from pathlib import Path
+
+import laspy
+import lazrs
+import numpy as np
+
+from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
+from mapsqueeze.io.atomic import atomic_output
+from mapsqueeze.io.pointcloud import ChunkSource, CloudStats, PointCloud, split_columns, validate_points
+
+LAS_SCALE_M = 1e-4
+"""LAS/LAZ coordinate resolution in metres (quantisation error at most half of it)."""
+
+STANDARD_FIELDS = ("intensity", "return_number", "number_of_returns", "classification", "scan_angle_rank",
+                   "scan_angle", "user_data", "point_source_id", "gps_time", "red", "green", "blue", "nir")
+"""Standard LAS point fields read and written as attributes (those the point format has)."""
+
+_WRITE_FORMATS = (0, 1, 2, 3, 6, 7, 8)
+_INTEGER_LIMIT = 2**31 - 1
+_MANAGED_RECORDS = {("LASF_Spec", 4), ("laszip encoded", 22204), ("LASF_Spec", 7)}  # laspy writes these itself
+_PROJECTED_CRS_KEY, _GEOGRAPHIC_CRS_KEY = 3072, 2048
+_ERRORS = (laspy.errors.LaspyException, lazrs.LazrsError, ValueError, EOFError)
+
+
+def _vlr_record(vlr) -> dict:
+    return {"user_id": vlr.user_id, "record_id": int(vlr.record_id), "description": vlr.description,
+            "data": base64.b64encode(vlr.record_data_bytes()).decode("ascii")}
+
+
+def _crs_summary(records: list) -> str | None:
+    """`EPSG:code` from a GeoKeyDirectory, else the WKT text, else None."""
+    for vlr in records:
+        if isinstance(vlr, laspy.vlrs.known.GeoKeyDirectoryVlr):
+            for key in vlr.geo_keys:
+                if key.id in (_PROJECTED_CRS_KEY, _GEOGRAPHIC_CRS_KEY) and key.tiff_tag_location == 0:
+                    return f"EPSG:{key.value_offset}"
+    for vlr in records:
+        if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
+            return vlr.string.strip("\0 ")
+    return None
+
+
+def _metadata(header: laspy.LasHeader, evlrs: list) -> dict:
+    vlrs = [vlr for vlr in header.vlrs if (vlr.user_id, vlr.record_id) not in _MANAGED_RECORDS]
+    evlrs = [vlr for vlr in evlrs if (vlr.user_id, vlr.record_id) not in _MANAGED_RECORDS]
+    extra = {}
+    for info in header.point_format.extra_dimensions:
+        entry = {"description": info.description.strip("\0 "), "type": np.dtype(info.dtype).base.str}
+        if info.scales is not None:
+            entry.update(scales=[float(v) for v in np.atleast_1d(info.scales)],
+                         offsets=[float(v) for v in np.atleast_1d(info.offsets)])
+        extra[info.name] = entry
+    las = {"version": str(header.version), "point_format": int(header.point_format.id),
+           "scales": [float(v) for v in header.scales], "offsets": [float(v) for v in header.offsets],
+           "system_identifier": header.system_identifier.strip("\0 "),
+           "wkt": bool(header.global_encoding.wkt),
+           "vlrs": [_vlr_record(vlr) for vlr in vlrs], "evlrs": [_vlr_record(vlr) for vlr in evlrs],
+           "extra_bytes": extra}
+    metadata = {"las": las}
+    crs = _crs_summary(vlrs + evlrs)
+    if crs:
+        metadata["crs"] = crs
+    return metadata
+
+
+def _attributes(record, point_format: laspy.PointFormat) -> dict[str, np.ndarray]:
+    names = set(point_format.dimension_names)
+    attributes = {name: np.array(record[name]) for name in STANDARD_FIELDS if name in names}
+    for name in point_format.extra_dimension_names:
+        attributes.update(split_columns(name, np.array(record[name])))
+    return attributes
+
+
+def las_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
+    try:
+        with laspy.open(path) as reader:
+            declared, seen = reader.header.point_count, 0
+            if declared == 0:
+                raise InvalidPointCloudError(f"{path}: the point cloud is empty")
+            metadata = _metadata(reader.header, list(reader.header.evlrs or []))
+            for part in reader.chunk_iterator(chunk_points):
+                seen += len(part)
+                if len(part):
+                    points = validate_points(np.column_stack([np.asarray(part.x), np.asarray(part.y),
+                                                              np.asarray(part.z)]), name=str(path))
+                    yield (PointCloud(points, _attributes(part, reader.header.point_format), metadata)
+                           if attributes else PointCloud(points))
+            if seen != declared:
+                raise PointCloudFormatError(
+                    f"{path}: LAS header declares {declared:,} points, the file holds {seen:,}")
+    except _ERRORS as exc:
+        raise PointCloudFormatError(f"{path}: corrupt LAS/LAZ file ({exc})") from None
+
+
+def _point_format(stats: CloudStats, preferred: int | None) -> int:
+    wanted = {name for name in stats.dtypes if name in STANDARD_FIELDS}
+    for candidate in ([preferred] if preferred is not None else []) + list(_WRITE_FORMATS):
+        if wanted <= set(laspy.PointFormat(candidate).dimension_names):
+            return candidate
+    raise InvalidPointCloudError(f"no LAS point format holds all of {', '.join(sorted(wanted))}")
+
+
+def _fits(scales: np.ndarray, offsets: np.ndarray, stats: CloudStats) -> bool:
+    if not (scales > 0).all():
+        return False
+    low, high = (stats.lowest - offsets) / scales, (stats.highest - offsets) / scales
+    return bool((np.abs(low) < _INTEGER_LIMIT).all() and (np.abs(high) < _INTEGER_LIMIT).all())
+
+
+def _header(stats: CloudStats) -> laspy.LasHeader:
+    las = stats.metadata.get("las", {})
+    point_format = _point_format(stats, las.get("point_format"))
+    version = las.get("version", "1.4") if point_format < 6 else "1.4"
+    header = laspy.LasHeader(version=version if version in ("1.2", "1.3", "1.4") else "1.4",
+                             point_format=point_format)
+    scales, offsets = np.asarray(las.get("scales", [0.0] * 3)), np.asarray(las.get("offsets", [0.0] * 3))
+    if not _fits(scales, offsets, stats):
+        scales, offsets = np.full(3, LAS_SCALE_M), np.floor(stats.lowest)
+        extent = (stats.highest - offsets) / LAS_SCALE_M
+        if extent.max() > _INTEGER_LIMIT:
+            raise InvalidPointCloudError(
+                f"the cloud spans {extent.max() * LAS_SCALE_M / 1e3:.0f} km, more than LAS can hold at "
+                f"{LAS_SCALE_M * 1e3:g} mm resolution (about {_INTEGER_LIMIT * LAS_SCALE_M / 1e3:.0f} km)")
+    header.offsets, header.scales = offsets, scales
+    if las.get("system_identifier"):
+        header.system_identifier = las["system_identifier"]
+    header.vlrs.extend(laspy.VLR(r["user_id"], r["record_id"], r["description"], base64.b64decode(r["data"]))
+                       for r in las.get("vlrs", []))
+    if las.get("evlrs") and header.version.minor >= 4:
+        header.evlrs = [laspy.VLR(r["user_id"], r["record_id"], r["description"], base64.b64decode(r["data"]))
+                        for r in las["evlrs"]]
+    if las.get("wkt") and header.version.minor >= 4:
+        header.global_encoding.wkt = True
+    standard = set(header.point_format.dimension_names)
+    described = las.get("extra_bytes", {})
+    params = []
+    for name, dtype in stats.dtypes.items():
+        if name in standard:
+            continue
+        if name.lower() in {dim.lower() for dim in standard}:
+            raise InvalidPointCloudError(f"attribute {name!r} clashes with a standard LAS field; rename it")
+        info = described.get(name, {})
+        if "scales" in info and dtype.kind == "f":
+            params.append(laspy.ExtraBytesParams(name, info["type"], info["description"],
+                                                 offsets=info["offsets"], scales=info["scales"]))
+        else:
+            params.append(laspy.ExtraBytesParams(name, dtype, info.get("description", "")))
+    header.add_extra_dims(params)
+    return header
+
+
+def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool) -> tuple[str, ...]:
+    header = _header(stats)
+    standard = set(header.point_format.dimension_names)
+    try:
+        with atomic_output(path) as temp, open(temp, "wb") as stream, \
+                laspy.open(stream, mode="w", header=header, do_compress=compress, closefd=False,
+                           laz_backend=laspy.LazBackend.Lazrs if compress else None) as writer:
+            for chunk in chunks():
+                record = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=header)
+                record.x, record.y, record.z = chunk.points[:, 0], chunk.points[:, 1], chunk.points[:, 2]
+                for name, values in chunk.attributes.items():
+                    limits = _integer_limits(record, name) if name in standard else None
+                    if limits is not None:
+                        low, high = limits
+                        if values.min() < low or values.max() > high or not np.array_equal(values, np.round(values)):
+                            raise InvalidPointCloudError(
+                                f"LAS {name} is an integer in {low}..{high} and attribute {name!r} is not; "
+                                "rename it to store it as an extra dimension")
+                        record[name] = values.astype(np.int64)
+                    else:
+                        record[name] = values
+                writer.write_points(record)
+    except (laspy.errors.LaspyException, OverflowError) as exc:
+        raise InvalidPointCloudError(f"cannot write LAS ({exc})") from None
+    return tuple(stats.dtypes)
+
+
+def _integer_limits(record, name: str) -> tuple[int, int] | None:
+    """Smallest and largest value of a standard integer field (bit fields by their width); None if scaled/float."""
+    dimension = record.point_format.dimension_by_name(name)
+    if dimension.is_scaled or (dimension.dtype is not None and np.dtype(dimension.dtype).kind == "f"):
+        return None
+    return int(dimension.min), int(dimension.max)

@@ -1,0 +1,184 @@
+"""Attributes and metadata through every format: LAS fields and CRS, SemanticKITTI labels, chunked I/O, convert."""
+
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.io import (
+    PointCloud,
+    dropped_fields,
+    iter_point_clouds,
+    read_point_cloud,
+    write_point_chunks,
+    write_points,
+)
+
+UTM = np.array([500000.0, 4000000.0, 50.0])
+
+
+def geokey_vlr(epsg: int) -> laspy.VLR:
+    """A GeoKeyDirectory VLR declaring a projected CRS (ProjectedCSTypeGeoKey 3072 = epsg)."""
+    keys = [1, 1, 0, 1, 3072, 0, 1, epsg]
+    return laspy.VLR("LASF_Projection", 34735, "GeoKeyDirectoryTag", struct.pack(f"<{len(keys)}H", *keys))
+
+
+def make_laz(path: Path, n: int = 2000, seed: int = 0) -> laspy.LasData:
+    """A LAZ in point format 3 with intensity, returns, classification, GPS time, RGB, an extra dim and a CRS."""
+    rng = np.random.default_rng(seed)
+    header = laspy.LasHeader(version="1.2", point_format=3)
+    header.scales, header.offsets = np.array([0.001, 0.001, 0.01]), UTM
+    header.vlrs.append(geokey_vlr(32632))
+    header.add_extra_dims([laspy.ExtraBytesParams("laser", np.uint8, "laser number")])
+    las = laspy.LasData(header)
+    xyz = UTM + rng.uniform(0, 60, (n, 3))
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.intensity = rng.integers(0, 4000, n).astype(np.uint16)
+    las.return_number = rng.integers(1, 4, n)
+    las.number_of_returns = np.full(n, 3)
+    las.classification = rng.choice([2, 5, 6], n)
+    las.gps_time = 1e5 + np.sort(rng.random(n)) * 10
+    las.red, las.green, las.blue = (rng.integers(0, 65536, n).astype(np.uint16) for _ in range(3))
+    las.laser = rng.integers(0, 64, n).astype(np.uint8)
+    las.write(str(path))
+    return las
+
+
+LAS_FIELDS = ("intensity", "return_number", "number_of_returns", "classification", "gps_time", "red", "green",
+              "blue", "laser")
+
+
+def test_las_reads_every_field_and_the_crs(tmp_path):
+    source = make_laz(tmp_path / "a.laz")
+    cloud = read_point_cloud(tmp_path / "a.laz")
+    for name in LAS_FIELDS:
+        np.testing.assert_array_equal(cloud.attributes[name], np.asarray(source[name]), err_msg=name)
+    las = cloud.metadata["las"]
+    assert cloud.metadata["crs"] == "EPSG:32632"
+    assert las["point_format"] == 3 and las["scales"] == [0.001, 0.001, 0.01] and las["offsets"] == list(UTM)
+    assert las["extra_bytes"]["laser"]["description"] == "laser number"
+
+
+def test_las_round_trip_keeps_fields_format_scales_and_crs_records(tmp_path):
+    make_laz(tmp_path / "a.laz")
+    cloud = read_point_cloud(tmp_path / "a.laz")
+    write_points(tmp_path / "b.laz", cloud.points, attributes=cloud.attributes, metadata=cloud.metadata)
+    again = laspy.read(tmp_path / "b.laz")
+    original = laspy.read(tmp_path / "a.laz")
+    assert again.header.point_format.id == 3
+    np.testing.assert_array_equal(again.header.scales, original.header.scales)
+    np.testing.assert_array_equal(again.header.offsets, original.header.offsets)
+    np.testing.assert_array_equal(again.X, original.X)
+    for name in LAS_FIELDS:
+        np.testing.assert_array_equal(np.asarray(again[name]), np.asarray(original[name]), err_msg=name)
+    geokeys = [vlr for vlr in again.header.vlrs if vlr.record_id == 34735]
+    assert len(geokeys) == 1 and read_point_cloud(tmp_path / "b.laz").metadata["crs"] == "EPSG:32632"
+    assert again.header.point_format.dimension_by_name("laser").description.strip("\0") == "laser number"
+
+
+def test_las_point_format_follows_the_fields_when_there_is_no_metadata(tmp_path):
+    n = 50
+    points = np.random.default_rng(0).random((n, 3))
+    write_points(tmp_path / "rgb.las", points, attributes={"red": np.ones(n, np.uint16), "gps_time": np.ones(n)})
+    assert laspy.read(tmp_path / "rgb.las").header.point_format.id == 3
+    write_points(tmp_path / "plain.las", points, attributes={"intensity": np.ones(n, np.uint16)})
+    assert laspy.read(tmp_path / "plain.las").header.point_format.id == 0
+
+
+def test_las_through_ply_and_back_keeps_every_field(tmp_path):
+    make_laz(tmp_path / "a.laz")
+    cloud = read_point_cloud(tmp_path / "a.laz")
+    write_points(tmp_path / "a.ply", cloud.points, attributes=cloud.attributes)
+    via_ply = read_point_cloud(tmp_path / "a.ply")
+    for name, values in cloud.attributes.items():
+        np.testing.assert_array_equal(via_ply.attributes[name], values, err_msg=name)
+        assert via_ply.attributes[name].dtype == values.dtype
+
+
+@pytest.mark.parametrize("name", ["a.ply", "a.las", "a.laz", "a.npy", "a.pcd.bin", "a.bin"])
+def test_chunked_reading_keeps_attributes(tmp_path, name):
+    n = 3001
+    rng = np.random.default_rng(3)
+    attributes = {"intensity": rng.integers(0, 255, n).astype(np.float32), "ring": np.arange(n) % 32}
+    if name.endswith(".bin") and not name.endswith(".pcd.bin"):
+        attributes = {"reflectance": rng.random(n).astype(np.float32), "label": (np.arange(n) % 20).astype(np.uint16),
+                      "instance": (np.arange(n) % 7).astype(np.uint16)}
+    if name.endswith((".las", ".laz")):
+        attributes["intensity"] = attributes["intensity"].astype(np.uint16)
+    write_points(tmp_path / name, rng.random((n, 3)), attributes=attributes)
+    whole = read_point_cloud(tmp_path / name)
+    chunks = list(iter_point_clouds(tmp_path / name, chunk_points=700))
+    assert len(chunks) == 5
+    for key, values in whole.attributes.items():
+        np.testing.assert_array_equal(np.concatenate([c.attributes[key] for c in chunks]), values)
+    if not name.endswith(".npy"):  # .npy stores no names
+        assert set(attributes) <= set(whole.attributes)
+
+
+@pytest.mark.parametrize("name", ["a.ply", "a.las", "a.pcd", "a.bin", "a.ply-ascii", "a.npy"])
+def test_chunked_writing_keeps_attributes_and_metadata(tmp_path, name):
+    n = 2500
+    rng = np.random.default_rng(4)
+    points = rng.random((n, 3)) * 30
+    attributes = {"reflectance": rng.random(n).astype(np.float32), "label": (np.arange(n) % 9).astype(np.uint16)}
+    format = "ply-ascii" if name.endswith("ply-ascii") else None
+    path = tmp_path / name.replace(".ply-ascii", ".ply")
+    count = write_point_chunks(path, lambda: (PointCloud(points[i:i + 600], {k: v[i:i + 600] for k, v in
+                                                                             attributes.items()})
+                                              for i in range(0, n, 600)), format=format)
+    assert count == n
+    cloud = read_point_cloud(path)
+    restored = cloud.attributes if not name.endswith(".npy") else {
+        "reflectance": cloud.attributes["column3"], "label": cloud.attributes["column4"]}
+    for key, values in attributes.items():
+        np.testing.assert_allclose(restored[key], values, rtol=1e-6)
+
+
+def test_semantic_kitti_labels_beside_the_scan_and_in_labels_folder(tmp_path):
+    n = 100
+    label, instance = (np.arange(n) % 30).astype(np.uint16), (np.arange(n) // 10).astype(np.uint16)
+    write_points(tmp_path / "000000.bin", np.random.default_rng(0).random((n, 3)),
+                 attributes={"reflectance": np.zeros(n, np.float32), "label": label, "instance": instance})
+    packed = np.fromfile(tmp_path / "000000.label", dtype="<u4")
+    np.testing.assert_array_equal(packed, label.astype(np.uint32) | (instance.astype(np.uint32) << 16))
+    cloud = read_point_cloud(tmp_path / "000000.bin")
+    np.testing.assert_array_equal(cloud.attributes["label"], label)
+    np.testing.assert_array_equal(cloud.attributes["instance"], instance)
+    (tmp_path / "seq" / "velodyne").mkdir(parents=True)
+    (tmp_path / "seq" / "labels").mkdir()
+    (tmp_path / "000000.bin").rename(tmp_path / "seq" / "velodyne" / "000000.bin")
+    (tmp_path / "000000.label").rename(tmp_path / "seq" / "labels" / "000000.label")
+    cloud = read_point_cloud(tmp_path / "seq" / "velodyne" / "000000.bin")
+    np.testing.assert_array_equal(cloud.attributes["label"], label)
+    (tmp_path / "seq" / "labels" / "000000.label").write_bytes(b"\0" * 8)
+    with pytest.raises(Exception, match="labels hold 2 entries"):
+        read_point_cloud(tmp_path / "seq" / "velodyne" / "000000.bin")
+
+
+def test_dropped_fields_and_attribute_dtype_mismatch(tmp_path):
+    assert dropped_fields(["reflectance", "ring", "label"], tmp_path / "a.bin") == ["ring"]
+    assert dropped_fields(["ring"], tmp_path / "a.ply") == []
+    chunks = [PointCloud(np.zeros((2, 3)), {"a": np.zeros(2, np.float32)}),
+              PointCloud(np.zeros((2, 3)), {"a": np.zeros(2, np.float64)})]
+    with pytest.raises(InvalidPointCloudError, match="chunks differ"):
+        write_point_chunks(tmp_path / "a.ply", lambda: iter(chunks))
+
+
+def test_cli_convert_warns_once_about_dropped_fields(tmp_path):
+    cli = Path(sys.executable).parent / "mapsqueeze"
+    if not cli.exists():
+        pytest.skip("CLI not installed")
+    n = 40
+    write_points(tmp_path / "a.ply", np.random.default_rng(0).random((n, 3)),
+                 attributes={"reflectance": np.ones(n, np.float32), "ring": np.zeros(n, np.uint8),
+                             "laser": np.zeros(n, np.uint8)})
+    result = subprocess.run([str(cli), "convert", str(tmp_path / "a.ply"), str(tmp_path / "a.bin")],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.count("\n") == 1 and "ring, laser" in result.stderr and "warning" in result.stderr
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / "a.bin").attributes["reflectance"], 1.0)
