@@ -61,12 +61,12 @@ def border_and_interior_d_e(gt: np.ndarray, rec: np.ndarray, tile_size=(40.0, 40
     """D_e (m) restricted to points within BORDER_BAND_M of a face between two tiles, and to the other points.
 
     Each term of the symmetric mean is assigned by its own point (ground truth or decoded) and the tile grid that
-    compression fitted to the map (mapsqueeze.data.tiling.fit_grid): a gap or overlap at tile borders shows up as
+    compression fitted to the map (mapsqueeze.geometry.tiling.fit_grid): a gap or overlap at tile borders shows up as
     a larger border D_e than interior D_e.
     """
     from scipy.spatial import cKDTree
 
-    from mapsqueeze.data.tiling import fit_grid
+    from mapsqueeze.geometry.tiling import fit_grid
 
     size = np.asarray(tile_size)
     origin, shape = fit_grid(gt.min(axis=0), gt.max(axis=0), size)

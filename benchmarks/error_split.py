@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mapsqueeze.data.tiling import fit_grid, tile_map
+from mapsqueeze.geometry.resample import resample_to_count
+from mapsqueeze.geometry.tiling import fit_grid, tile_map
 from mapsqueeze.io import read_points
 from mapsqueeze.model import load_model
-from mapsqueeze.model.autoencoder import resample_to_count
 
 
 def directions(gt: np.ndarray, rec: np.ndarray) -> tuple[float, float]:

@@ -15,7 +15,6 @@ from scipy.spatial import cKDTree
 
 from mapsqueeze.baselines import (
     BASELINES,
-    BaselineError,
     DracoCodec,
     GpccCodec,
     OctreeAcCodec,
@@ -27,7 +26,7 @@ from mapsqueeze.baselines import (
     pareto_front,
     setting_label,
 )
-from mapsqueeze.errors import ContainerError, InvalidPointCloudError, MapsqueezeError
+from mapsqueeze.errors import BaselineError, ContainerError, InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.voxel import voxel_filter
 
 HALF_DIAGONAL = math.sqrt(3) / 2

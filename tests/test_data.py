@@ -8,7 +8,6 @@ import pytest
 from scipy.spatial import cKDTree
 
 from mapsqueeze.data import (
-    DataError,
     aggregate_map,
     build_submaps,
     crop_submap,
@@ -16,14 +15,13 @@ from mapsqueeze.data import (
     open_sequences,
     read_dataset,
     submap_centers,
-    tile_map,
     transform,
     write_dataset,
 )
 from mapsqueeze.data.mapping import preprocess_scan, submap_bounds
-from mapsqueeze.data.tiling import TILE_SIZE_M, fit_grid
 from mapsqueeze.data.sequences import read_poses
-from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.errors import DataError, InvalidPointCloudError
+from mapsqueeze.geometry.tiling import TILE_SIZE_M, fit_grid, tile_map
 from mapsqueeze.geometry.voxel import VoxelAccumulator, pack_indices, voxel_filter, voxel_indices
 from mapsqueeze.io import read_points, write_points
 

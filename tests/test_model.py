@@ -5,10 +5,11 @@ import pytest
 import torch
 
 from mapsqueeze.model import (
-    ModelConfig, build_model, density_law_factors, import_reference, load_model, resample_to_count, save_model,
+    ModelConfig, build_model, density_law_factors, import_reference, load_model, save_model,
 )
 from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.grid import radius_neighbors
+from mapsqueeze.geometry.resample import resample_to_count
 from mapsqueeze.model.density import fit_density_law
 from mapsqueeze.model.kpconv import KPConv
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss

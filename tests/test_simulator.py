@@ -12,12 +12,12 @@ from mapsqueeze.data.simulator import (
     SENSORS,
     Raycaster,
     SimulationConfig,
-    SimulationError,
     build_scene,
     drive,
     simulate_dataset,
     simulate_scene,
 )
+from mapsqueeze.errors import SimulationError
 from mapsqueeze.data.simulator.shapes import Material, MeshBuilder, boxes, quads
 
 MOUNT_M = 1.73

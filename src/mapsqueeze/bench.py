@@ -50,8 +50,7 @@ def collect_clouds(inputs: list[Path], split: str = "test", every: int = 1) -> I
     """Clouds from dataset folders (the given split), plain folders (every cloud file) and single files; with
     every=N only the first, (N+1)-th, ... of them (the others are not read)."""
     from mapsqueeze.data.mapping import MANIFEST_NAME, read_dataset
-    from mapsqueeze.io import read_points
-    from mapsqueeze.train import CLOUD_SUFFIXES
+    from mapsqueeze.io import point_cloud_files, read_points
 
     def sources() -> Iterator[tuple[str, Callable[[], tuple[np.ndarray, np.ndarray]]]]:
         """(name, loader of (points, origin)) of every cloud, nothing read yet."""
@@ -60,7 +59,7 @@ def collect_clouds(inputs: list[Path], split: str = "test", every: int = 1) -> I
                 for record in read_dataset(path).split(split):
                     yield f"{path.name}/{record.path.stem}", lambda r=record: (r.load().points, r.bounds[0])
             else:
-                files = sorted(p for p in path.iterdir() if p.suffix in CLOUD_SUFFIXES) if path.is_dir() else [path]
+                files = point_cloud_files(path) if path.is_dir() else [path]
                 for file in files:
                     yield file.stem, lambda f=file: _points_and_corner(read_points(f))
 

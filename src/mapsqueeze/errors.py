@@ -19,3 +19,15 @@ class ContainerError(MapsqueezeError):
 
 class ModelError(MapsqueezeError):
     """A model or checkpoint cannot be found, loaded or matched to its configuration."""
+
+
+class DataError(MapsqueezeError):
+    """Scans, poses, calibration, labels or a dataset manifest are missing, incomplete or inconsistent."""
+
+
+class SimulationError(MapsqueezeError):
+    """A simulator request is invalid: unknown sensor or preset, impossible sizes or counts."""
+
+
+class BaselineError(MapsqueezeError):
+    """A baseline codec is unavailable, was given a bad setting, or its external tool failed."""

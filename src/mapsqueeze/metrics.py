@@ -15,8 +15,8 @@ from scipy.spatial import cKDTree
 
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.normals import normals_pca
+from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.geometry.voxel import pack_indices, voxel_indices
-from mapsqueeze.io import validate_points
 
 IOU_VOXEL_M = (0.2, 0.2, 0.1)
 """Occupancy-grid resolution of the paper's IoU, x, y, z in metres (20 x 20 x 10 cm, after Huang et al.)."""

@@ -37,9 +37,6 @@ class TrainConfig:
     val_limit: int | None = None  # validate on at most this many submaps
 
 
-CLOUD_SUFFIXES = {".ply", ".pcd", ".npy", ".bin", ".las", ".laz"}
-
-
 @dataclass
 class Sample:
     """One training cloud in metres, relative to its own minimum corner (float32)."""
@@ -52,13 +49,13 @@ def load_samples(dataset: Path, splits: tuple[str, ...]) -> list[Sample]:
     """Submaps of a dataset directory (manifest.json written by `build-map`/`simulate`/`tile`) in the given
     splits, or every point-cloud file of a plain folder (all splits)."""
     from mapsqueeze.data.mapping import MANIFEST_NAME, read_dataset
-    from mapsqueeze.io import read_points
+    from mapsqueeze.io import point_cloud_files, read_points
 
     dataset = Path(dataset)
     if (dataset / MANIFEST_NAME).is_file():
         clouds = [(r.path.stem, r.local_points()) for r in read_dataset(dataset).records if r.split in splits]
     elif dataset.is_dir():
-        clouds = [(p.stem, read_points(p)) for p in sorted(dataset.iterdir()) if p.suffix in CLOUD_SUFFIXES]
+        clouds = [(p.stem, read_points(p)) for p in point_cloud_files(dataset)]
     else:
         raise MapsqueezeError(f"dataset {dataset} not found")
     return [Sample(name, (pts - pts.min(axis=0)).astype(np.float32)) for name, pts in clouds if len(pts)]

@@ -2,11 +2,12 @@
 octree (raw and arithmetic-coded) and MPEG G-PCC (external `tmc3`). Each is a `BaselineCodec`; `BASELINES`
 maps a codec's name to its class."""
 
-from mapsqueeze.baselines.base import BaselineCodec, BaselineError, Setting, setting_label
+from mapsqueeze.baselines.base import BaselineCodec, Setting, setting_label
 from mapsqueeze.baselines.draco import DracoCodec
 from mapsqueeze.baselines.gpcc import GpccCodec
 from mapsqueeze.baselines.octree import OctreeAcCodec, OctreeCodec
 from mapsqueeze.baselines.rd import distortion_at, pareto_front
+from mapsqueeze.errors import BaselineError
 
 BASELINES: dict[str, type[BaselineCodec]] = {
     codec.name: codec for codec in (DracoCodec, OctreeCodec, OctreeAcCodec, GpccCodec)
@@ -23,7 +24,6 @@ def get_baseline(name: str) -> BaselineCodec:
 __all__ = [
     "BASELINES",
     "BaselineCodec",
-    "BaselineError",
     "DracoCodec",
     "GpccCodec",
     "OctreeAcCodec",

@@ -1,18 +1,14 @@
-"""The interface every classical baseline codec implements, and the error its failures raise."""
+"""The interface every classical baseline codec implements (its failures raise errors.BaselineError)."""
 
 from abc import ABC, abstractmethod
 from typing import ClassVar
 
 import numpy as np
 
-from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.errors import BaselineError
 
 Setting = dict[str, float | int | str]
 """One quality level of a codec: plain JSON-able values (e.g. {"voxel_m": 0.4, "bits": 10})."""
-
-
-class BaselineError(MapsqueezeError):
-    """A baseline codec is unavailable, was given a bad setting, or its external tool failed."""
 
 
 class BaselineCodec(ABC):

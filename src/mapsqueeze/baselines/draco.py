@@ -9,10 +9,10 @@ from typing import ClassVar
 import DracoPy
 import numpy as np
 
-from mapsqueeze.baselines.base import BaselineCodec, BaselineError, Setting, setting_number
-from mapsqueeze.errors import ContainerError
+from mapsqueeze.baselines.base import BaselineCodec, Setting, setting_number
+from mapsqueeze.errors import BaselineError, ContainerError
 from mapsqueeze.geometry.voxel import voxel_filter
-from mapsqueeze.io import MAX_ABS_COORDINATE_M, validate_points
+from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M, validate_points
 
 VOXEL_SIZES_M = (0.0, 0.2, 0.4, 0.8, 1.6)
 """Voxel-filter sizes (metres) of the benchmark sweep; 0 keeps every point."""

@@ -22,9 +22,9 @@ from typing import ClassVar
 import numpy as np
 from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
 
-from mapsqueeze.baselines.base import BaselineCodec, BaselineError, Setting, setting_number, setting_value
-from mapsqueeze.errors import ContainerError
-from mapsqueeze.io import MAX_ABS_COORDINATE_M, validate_points
+from mapsqueeze.baselines.base import BaselineCodec, Setting, setting_number, setting_value
+from mapsqueeze.errors import BaselineError, ContainerError
+from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M, validate_points
 
 GRID_STEP_M = 0.001
 """Input quantisation step (metres) before tmc3 sees the points: 1 mm, far below every coded cell."""

@@ -16,11 +16,11 @@ from typing import ClassVar
 import constriction
 import numpy as np
 
-from mapsqueeze.baselines.base import BaselineCodec, BaselineError, Setting, setting_number
-from mapsqueeze.errors import ContainerError
+from mapsqueeze.baselines.base import BaselineCodec, Setting, setting_number
+from mapsqueeze.errors import BaselineError, ContainerError
 from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes
+from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M, validate_points
 from mapsqueeze.geometry.voxel import voxel_indices
-from mapsqueeze.io import MAX_ABS_COORDINATE_M, validate_points
 
 _MAGIC = b"MSOT"
 _VERSION = 1

@@ -4,7 +4,7 @@ at the same bpp"."""
 
 import numpy as np
 
-from mapsqueeze.baselines.base import BaselineError
+from mapsqueeze.errors import BaselineError
 
 
 def _checked_pairs(bpp, distortion) -> tuple[np.ndarray, np.ndarray]:

@@ -19,9 +19,9 @@ from mapsqueeze.data.mapping import (
     build_submaps,
     write_dataset,
 )
-from mapsqueeze.data.sequences import DataError, estimate_poses, open_sequences
-from mapsqueeze.data.tiling import TILE_SIZE_M, tile_map
-from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.data.sequences import estimate_poses, open_sequences
+from mapsqueeze.errors import DataError, MapsqueezeError
+from mapsqueeze.geometry.tiling import TILE_SIZE_M, tile_map
 from mapsqueeze.geometry.voxel import as_lengths
 from mapsqueeze.io import read_points, write_points
 

@@ -8,7 +8,8 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from mapsqueeze.cli.app import app
-from mapsqueeze.data.simulator import PRESETS, SENSORS, SimulationConfig, SimulationError, simulate_dataset
+from mapsqueeze.data.simulator import PRESETS, SENSORS, SimulationConfig, simulate_dataset
+from mapsqueeze.errors import SimulationError
 
 
 def _names(text: str, option: str) -> tuple[str, ...]:

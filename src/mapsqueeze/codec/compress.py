@@ -29,10 +29,10 @@ from mapsqueeze.codec.embedding import (
     quantise,
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
-from mapsqueeze.data.tiling import fit_grid, tile_map, to_local
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
-from mapsqueeze.io import validate_points
+from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
+from mapsqueeze.geometry.validation import validate_points
 
 RAW_POINTS_PER_EMBEDDING = 4
 """A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each

@@ -20,6 +20,7 @@ from mapsqueeze.codec.container import (
 from mapsqueeze.codec.embedding import Precision, decode_float, dequantise
 from mapsqueeze.codec.rawtile import decode_raw_tile
 from mapsqueeze.errors import ContainerError, InvalidPointCloudError, MapsqueezeError, ModelError
+from mapsqueeze.geometry.resample import resample_to_count
 
 MIN_DENSITY_EXTENT_M = 1.0
 """--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
@@ -35,7 +36,7 @@ def parse_bbox(bbox: Sequence[float]) -> np.ndarray:
 
 
 def tile_origin(header: Header, entry: TileEntry) -> np.ndarray:
-    """float64 world lower corner of a tile (the same arithmetic as data.tiling)."""
+    """float64 world lower corner of a tile (the same arithmetic as geometry.tiling)."""
     return np.asarray(header.origin) + np.asarray(entry.index, dtype=np.int64) * np.asarray(header.tile_size)
 
 
@@ -91,8 +92,6 @@ def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np
     The network grows surfaces past the tile's bounds box; those points are dropped (the neighbouring tile codes
     that space) and the count is restored from the points inside (`keep_inside`), so tile faces show no seams.
     """
-    from mapsqueeze.model import resample_to_count
-
     header, entry = reader.header, reader.entries[position]
     label = f"{reader.name}: {entry.label(position)}"
     payload = reader.payload(position)

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mapsqueeze.data.sequences import DataError
-from mapsqueeze.data.tiling import TILE_SIZE_M, to_local
+from mapsqueeze.errors import DataError
+from mapsqueeze.geometry.tiling import TILE_SIZE_M, to_local
 from mapsqueeze.geometry.voxel import VoxelAccumulator, as_lengths
 from mapsqueeze.io import atomic_write_bytes, read_points, validate_points, write_points
 

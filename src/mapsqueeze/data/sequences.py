@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.errors import DataError, MapsqueezeError
 from mapsqueeze.io import SUPPORTED_FORMATS, read_points
 
 DROPPED_CLASSES: frozenset[int] = frozenset({0, 1, *range(252, 260)})
@@ -34,10 +34,6 @@ POSES_FILE_NAMES = ("poses.txt", "poses_lidar.txt", "poses_kitti.txt")
 """Pose-file names looked for in a scan folder before falling back to a single `*poses*.txt`."""
 
 _SCAN_SUFFIXES = tuple(f".{name}" for name in SUPPORTED_FORMATS if "-" not in name)
-
-
-class DataError(MapsqueezeError):
-    """Scans, poses, calibration, labels or a dataset manifest are missing, incomplete or inconsistent."""
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mapsqueeze.errors import MapsqueezeError
-from mapsqueeze.io import validate_points
+from mapsqueeze.geometry.validation import validate_points
 
 NORMAL_RADIUS_M = 0.5
 """Neighbourhood radius of the paper's normals (50 cm)."""

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from mapsqueeze.errors import InvalidPointCloudError
-from mapsqueeze.io import validate_points
+from mapsqueeze.geometry.validation import validate_points
 
 _AXIS_BITS = 21  # 3 x 21 bits fit one int64 key: 2,097,152 voxels per axis (209 km at 10 cm)
 

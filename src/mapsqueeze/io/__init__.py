@@ -3,6 +3,7 @@ LAS/LAZ, .npy). Points are (N, 3) float64 metres with named per-point attributes
 table of formats, one module per family (tables, ply, pcd, las) their layouts and precision."""
 
 from mapsqueeze.io.atomic import atomic_output, atomic_write_bytes
+from mapsqueeze.io.folders import is_point_cloud_path, point_cloud_files
 from mapsqueeze.io.formats import (
     DEFAULT_CHUNK_POINTS,
     FORMATS,
@@ -37,8 +38,10 @@ __all__ = [
     "atomic_write_bytes",
     "dropped_fields",
     "format_name",
+    "is_point_cloud_path",
     "iter_point_clouds",
     "iter_points",
+    "point_cloud_files",
     "read_point_cloud",
     "read_points",
     "validate_attributes",

@@ -7,9 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mapsqueeze.errors import InvalidPointCloudError
-
-MAX_ABS_COORDINATE_M = 1e7
-"""Coordinates at or beyond 10,000 km from the origin are rejected as absurd (UTM eastings/northings fit)."""
+# the check every io reader and writer applies, re-exported with io's API
+from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M, validate_points  # noqa: F401
 
 FLOAT32_MAX_ERROR_M = 1e-3
 """Largest rounding error (metres) accepted when x, y, z are stored as float32; beyond it float64 is used
@@ -53,35 +52,6 @@ class CloudStats:
                 f"{label} stores float32 x, y, z, which would move points by up to {self.float32_error * 1e3:.1f} "
                 "mm; shift the cloud towards the origin or write .ply/.las"
             )
-
-
-def validate_points(points, name: str = "point cloud") -> np.ndarray:
-    """Return `points` as a C-contiguous (N, 3) float64 array, or raise InvalidPointCloudError.
-
-    Checks: numeric, shape (N, 3) with N > 0, all finite, every |coordinate| < MAX_ABS_COORDINATE_M.
-    """
-    try:
-        array = np.asarray(points)
-    except (TypeError, ValueError) as exc:
-        raise InvalidPointCloudError(f"{name}: not a numeric array ({exc})") from None
-    if array.dtype.kind not in "iuf":
-        raise InvalidPointCloudError(f"{name}: expected numeric x, y, z, got dtype {array.dtype}")
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidPointCloudError(f"{name}: expected an (N, 3) array of x, y, z, got shape {array.shape}")
-    if len(array) == 0:
-        raise InvalidPointCloudError(f"{name}: the point cloud is empty")
-    array = np.ascontiguousarray(array, dtype=np.float64)
-    finite = np.isfinite(array).all(axis=1)
-    if not finite.all():
-        raise InvalidPointCloudError(
-            f"{name}: {np.count_nonzero(~finite):,} of {len(array):,} points have NaN or infinite coordinates"
-        )
-    largest = float(np.abs(array).max())
-    if largest >= MAX_ABS_COORDINATE_M:
-        raise InvalidPointCloudError(
-            f"{name}: absurd coordinate {largest:.6g} m (limit {MAX_ABS_COORDINATE_M:.0e} m from the origin)"
-        )
-    return array
 
 
 def validate_attributes(attributes: dict | None, num_points: int, name: str = "point cloud") -> dict[str, np.ndarray]:

@@ -1,6 +1,6 @@
 """The DEPOCO autoencoder: config, network, weights I/O and the numpy-level CompressionModel."""
 
-from mapsqueeze.model.autoencoder import Autoencoder, CompressionModel, Embedding, resample_to_count
+from mapsqueeze.model.autoencoder import Autoencoder, CompressionModel, Embedding
 from mapsqueeze.model.checkpoint import (
     import_reference,
     load_model,
@@ -21,6 +21,6 @@ def build_model(config: ModelConfig, seed: int = 0) -> Autoencoder:
 
 __all__ = [
     "Autoencoder", "CompressionModel", "Embedding", "ModelConfig", "RATE_SUBSAMPLING_M", "build_model",
-    "density_law", "density_law_factors", "import_reference", "load_model", "load_network", "resample_to_count",
+    "density_law", "density_law_factors", "import_reference", "load_model", "load_network",
     "save_model", "shipped_models",
 ]

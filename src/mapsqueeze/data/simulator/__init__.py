@@ -12,7 +12,7 @@ aggregation, datasets). See docs/simulator.md.
 
 from mapsqueeze.data.simulator.raycast import Raycaster
 from mapsqueeze.data.simulator.scene import PRESETS, Preset, Scene, build_scene, get_preset
-from mapsqueeze.data.simulator.sensors import SENSORS, SensorInstance, SensorModel, SimulationError, get_sensor
+from mapsqueeze.data.simulator.sensors import SENSORS, SensorInstance, SensorModel, get_sensor
 from mapsqueeze.data.simulator.simulate import (
     SceneResult,
     SimulationConfig,
@@ -32,7 +32,6 @@ __all__ = [
     "SensorInstance",
     "SensorModel",
     "SimulationConfig",
-    "SimulationError",
     "build_scene",
     "drive",
     "get_preset",

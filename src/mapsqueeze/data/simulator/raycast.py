@@ -13,8 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from mapsqueeze.data.simulator.sensors import SensorInstance, SimulationError
+from mapsqueeze.data.simulator.sensors import SensorInstance
 from mapsqueeze.data.simulator.shapes import Material
+from mapsqueeze.errors import SimulationError
 
 
 @dataclass(frozen=True)

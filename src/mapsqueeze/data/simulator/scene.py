@@ -13,9 +13,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mapsqueeze.data.simulator import objects
-from mapsqueeze.data.simulator.sensors import SimulationError
 from mapsqueeze.data.simulator.shapes import MeshBuilder, boxes, rotation_z
 from mapsqueeze.data.simulator.streets import FREE, SIDEWALK, STEP_M, Ground, SideProfile, Street, random_bumps
+from mapsqueeze.errors import SimulationError
 
 REACH_M = 28.0
 """Objects farther than this from the driven route are not built (they are beyond the 20 m mapping range)."""

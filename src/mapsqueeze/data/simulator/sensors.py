@@ -9,11 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapsqueeze.errors import MapsqueezeError
-
-
-class SimulationError(MapsqueezeError):
-    """A simulator request is invalid: unknown sensor or preset, impossible sizes or counts."""
+from mapsqueeze.errors import SimulationError
 
 
 # Velodyne VLP-32C (Ultra Puck) beam elevations from its data sheet, degrees (denser around the horizon).

@@ -32,7 +32,8 @@ from mapsqueeze.data.mapping import (
 )
 from mapsqueeze.data.simulator.raycast import Raycaster
 from mapsqueeze.data.simulator.scene import Scene, build_scene, get_preset
-from mapsqueeze.data.simulator.sensors import SensorInstance, SimulationError, get_sensor
+from mapsqueeze.data.simulator.sensors import SensorInstance, get_sensor
+from mapsqueeze.errors import SimulationError
 
 SCAN_RATE_HZ = 10.0
 SUBMAP_SPACING_M = 15.0

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapsqueeze.geometry.bounds import bounding_box
+from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.geometry.voxel import as_lengths, pack_indices
-from mapsqueeze.io import validate_points
 
 TILE_SIZE_M = (40.0, 40.0, 15.0)
 """The paper's submap size (x, y, z) in metres."""
