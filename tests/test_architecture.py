@@ -88,3 +88,12 @@ def test_an_upward_import_is_caught(tmp_path):
         "data/mapping.py:1: data (floor 3) imports mapsqueeze.model (floor 3)",
         "geometry/normals.py:2: geometry (floor 1) imports mapsqueeze.io (floor 2)",
     ]
+
+
+MAX_SOURCE_LINES = 500
+
+
+def test_no_source_file_is_over_500_lines():
+    long_files = {str(path.relative_to(PACKAGE)): n for path in sorted(PACKAGE.rglob("*.py"))
+                  if (n := len(path.read_text().splitlines())) > MAX_SOURCE_LINES}
+    assert long_files == {}, f"split these files (lines): {long_files}"

@@ -5,13 +5,15 @@ built with the same map-building code as real data (`mapsqueeze.data.mapping`).
     simulate_dataset("datasets/sim", SimulationConfig(n_submaps=200, sensors=("hdl64",), presets=("urban",)))
 
 Modules: `sensors` (beam geometry and noise of HDL-64E, HDL-32E, VLP-32C, OS1-128, OS2-128), `shapes` (mesh
-primitives), `objects` (buildings, vehicles, vegetation, fences, poles, clutter), `streets` (roads and terrain),
-`scene` (presets and layout), `raycast` (Embree ray casting with material responses), `simulate` (driving,
+primitives), `buildings`, `objects` (vehicles, vegetation, fences, poles, clutter), `streets` (roads and terrain),
+`presets` (kinds of environment), `layout` (placing objects along streets), `lots` (what fills a street side),
+`scene` (assembly of a scene), `raycast` (Embree ray casting with material responses), `simulate` (driving,
 aggregation, datasets). See docs/simulator.md.
 """
 
+from mapsqueeze.data.simulator.presets import PRESETS, Preset, get_preset
 from mapsqueeze.data.simulator.raycast import Raycaster
-from mapsqueeze.data.simulator.scene import PRESETS, Preset, Scene, build_scene, get_preset
+from mapsqueeze.data.simulator.scene import Scene, build_scene
 from mapsqueeze.data.simulator.sensors import SENSORS, SensorInstance, SensorModel, get_sensor
 from mapsqueeze.data.simulator.simulate import (
     SceneResult,

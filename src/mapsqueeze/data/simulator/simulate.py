@@ -30,8 +30,9 @@ from mapsqueeze.data.mapping import (
     submap_centers,
     write_dataset,
 )
+from mapsqueeze.data.simulator.presets import get_preset
 from mapsqueeze.data.simulator.raycast import Raycaster
-from mapsqueeze.data.simulator.scene import Scene, build_scene, get_preset
+from mapsqueeze.data.simulator.scene import Scene, build_scene
 from mapsqueeze.data.simulator.sensors import SensorInstance, get_sensor
 from mapsqueeze.errors import SimulationError
 
