@@ -1,11 +1,11 @@
-# Two entry points on a fresh machine: `make demo` (main job) and `make test`.
+# Entry points on a fresh machine: `make demo` (main job), `make test` (fast suite), `make test-all` (CI).
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 # The CPU wheel of torch 2.13.0 lies on these machines' disk; elsewhere set TORCH_SPEC (e.g. TORCH_SPEC=torch for CUDA).
 TORCH_SPEC ?= torch==2.13.0
 
-.PHONY: install demo test clean
+.PHONY: install demo test test-all clean
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,6 +19,9 @@ demo: install
 	$(VENV)/bin/mapsqueeze demo
 
 test: install
+	$(PY) -m pytest tests -m "not slow"
+
+test-all: install
 	$(PY) -m pytest tests
 
 clean:

@@ -6,7 +6,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "mapsqueeze"
 
 FLOORS = {
-    "errors": 0, "shared": 0,
+    "errors": 0, "shared": 0, "version": 0,
     "geometry": 1,
     "io": 2, "metrics": 2,
     "data": 3, "model": 3, "baselines": 3,

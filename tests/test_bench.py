@@ -3,6 +3,7 @@
 import csv
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from mapsqueeze.bench import run_benchmark
@@ -11,6 +12,7 @@ from mapsqueeze.io import write_points
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model, shipped_models
 
 
+@pytest.mark.slow
 def test_benchmark_writes_csv_table_and_plot(tmp_path):
     rng = np.random.default_rng(0)
     ground = np.c_[rng.random((6000, 2)) * 30, rng.normal(0, 0.02, 6000)]
@@ -35,6 +37,7 @@ def test_benchmark_writes_csv_table_and_plot(tmp_path):
     assert (tmp_path / "out" / "rd_street.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_every_nth_cloud(tmp_path):
     rng = np.random.default_rng(1)
     (tmp_path / "clouds").mkdir()
@@ -76,17 +79,24 @@ def test_model_labels_are_unique_path_suffixes():
     assert unique_labels(["runs/e0/best"]) == ["e0/best"]
 
 
-def test_benchmark_resumes_and_extends_an_earlier_run(tmp_path):
+@pytest.mark.slow
+def test_benchmark_resumes_and_extends_an_earlier_run(tmp_path, monkeypatch):
+    from mapsqueeze.baselines.octree import OctreeCodec
+
+    encoded = []  # one entry per octree encoding the benchmark runs
+    encode = OctreeCodec.encode
+    monkeypatch.setattr(OctreeCodec, "encode", lambda self, *args: encoded.append(1) or encode(self, *args))
     rng = np.random.default_rng(1)
     write_points(tmp_path / "patch.ply", np.c_[rng.random((4000, 2)) * 20, rng.normal(0, 0.02, 4000)])
     save_model(build_model(ModelConfig.for_rate("e0")), tmp_path / "e0")
     first = run_benchmark([tmp_path / "patch.ply"], ["octree"], tmp_path / "out", log=lambda m: None)
+    assert len(encoded) == len(first) > 0
     second = run_benchmark([tmp_path / "patch.ply"], ["octree", "mapsqueeze"], tmp_path / "out",
                            models=[str(tmp_path / "e0")], log=lambda m: None)
-    assert second[: len(first)] == first  # kept from the CSV, not run again (timings would differ)
+    assert second[: len(first)] == first and len(encoded) == len(first)  # kept from the CSV, not encoded again
     assert {r.codec for r in second[len(first):]} == {"mapsqueeze"}
     again = run_benchmark([tmp_path / "patch.ply"], ["octree"], tmp_path / "out", log=lambda m: None, fresh=True)
-    assert len(again) == len(first) and [r.encode_s for r in again] != [r.encode_s for r in first]
+    assert len(again) == len(first) and len(encoded) == 2 * len(first)  # fresh: every octree row encoded again
 
 
 def test_per_cloud_comparison_against_any_front():

@@ -472,3 +472,10 @@ def test_raw_tile_payload_bytes_are_pinned():
     points = (np.random.default_rng(5).random((3000, 3)) * [40, 40, 15]).astype(np.float32)
     payload = encode_raw_tile(points, np.array([40.0, 40.0, 15.0]))
     assert hashlib.sha256(payload).hexdigest() == "13a0c695d538bab2986c8cdcf74f4b206e1569b71857788b8f9fa52df52c5760"
+
+
+def test_version_option_prints_the_package_version(run_cli):
+    import mapsqueeze
+
+    code, out, err = run_cli("--version")
+    assert (code, out, err) == (0, f"mapsqueeze {mapsqueeze.__version__}\n", "")

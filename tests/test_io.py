@@ -408,6 +408,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([str(MAPSQUEEZE), *args], capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow
 def test_cli_convert(tmp_path):
     source, target = tmp_path / "scan.bin", tmp_path / "scan.laz"
     write_points(source, local_cloud(321), attributes={"reflectance": np.full(321, 0.25, np.float32)})

@@ -83,6 +83,7 @@ def test_chamfer_loss_matches_brute_force():
     assert torch.allclose(chamfer_loss(a, b), expected)
 
 
+@pytest.mark.slow
 def test_tiny_model_overfits_a_patch():
     torch.manual_seed(0)
     config = ModelConfig.for_rate("e0", upsampling_factors=(2, 2, 3, 3))
@@ -181,6 +182,7 @@ def test_loss_gradient_is_bitwise_reproducible_with_many_shared_neighbours():
     assert all(torch.equal(g, grads[0]) for g in grads[1:])
 
 
+@pytest.mark.slow
 def test_refinement_lowers_d_e_of_the_shipped_model_and_leaves_the_network_alone():
     model = load_model("e1")
     tile = street_patch(n=20000, seed=5, extent=36.0)

@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from mapsqueeze import shared
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -54,6 +56,7 @@ def run_reference_test(empty_shared: Path, require: bool) -> subprocess.Complete
                           env=env, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_reference_tests_fail_without_shared_material_when_required(tmp_path):
     required = run_reference_test(tmp_path, require=True)
     assert required.returncode == 1, required.stdout + required.stderr

@@ -161,6 +161,7 @@ def tiny_runs():
     return [simulate_scene(SimulationConfig(seed=seed, **TINY), 0) for seed in (0, 0, 1)]
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_points_and_other_seeds_differ(tiny_runs):
     first, again, other = (run.submaps[0] for run in tiny_runs)
     assert first.n_points > 20_000
@@ -170,6 +171,7 @@ def test_same_seed_gives_identical_points_and_other_seeds_differ(tiny_runs):
     assert other.n_points != first.n_points or not np.array_equal(other.points, first.points)
 
 
+@pytest.mark.slow
 def test_submaps_respect_the_mapping_ranges_and_box(tiny_runs):
     submap = tiny_runs[0].submaps[0]
     assert tiny_runs[0].meta["submaps"] == [{"index": 0, "n_scans": 2, "stride": 1}]
@@ -184,6 +186,7 @@ def test_submaps_respect_the_mapping_ranges_and_box(tiny_runs):
     assert len(np.unique(keys, axis=0)) == submap.n_points
 
 
+@pytest.mark.slow
 def test_simulated_dataset_reads_back_and_does_not_depend_on_workers(tmp_path):
     config = SimulationConfig(n_submaps=2, submaps_per_scene=1, sensors=("hdl32",), presets=("highway",),
                               scans_per_submap=(1, 1), seed=3)

@@ -1,6 +1,6 @@
 """mapsqueeze: learned compression of dense 3-D LiDAR point-cloud maps."""
 
-__version__ = "0.1.0"
+from mapsqueeze.version import __version__  # noqa: F401
 
 _API = ("compress", "decompress", "compress_file", "decompress_file", "info")
 

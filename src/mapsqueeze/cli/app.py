@@ -3,6 +3,7 @@
 import typer
 
 from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.version import __version__
 
 app = typer.Typer(
     name="mapsqueeze",
@@ -11,6 +12,20 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+
+def _print_version(requested: bool) -> None:
+    if requested:
+        typer.echo(f"mapsqueeze {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
+    """Compress dense 3-D point-cloud maps with a learned autoencoder."""
 
 
 def parse_numbers(text: str, count: int, option: str, meaning: str) -> list[float]:
