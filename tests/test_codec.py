@@ -36,7 +36,7 @@ from mapsqueeze.codec.entropy import (
     encode_gaps,
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
-from mapsqueeze.errors import ContainerError, InvalidPointCloudError, MapsqueezeError, ModelError
+from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.io import read_points, write_points
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
 
@@ -259,7 +259,7 @@ def test_other_densities(compressed, model, map_points):
     assert len(denser) > 0
     with pytest.raises(InvalidPointCloudError):
         mapsqueeze.decompress(compressed, model=model, density=5.0, n_points=10)
-    with pytest.raises(InvalidPointCloudError, match="per tile"):
+    with pytest.raises(DecodeLimitError, match="per tile"):
         mapsqueeze.decompress(compressed, model=model, n_points=10**12)
 
 

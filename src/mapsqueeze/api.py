@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapsqueeze.codec.compress import ProgressCallback, compress_chunks, compress_map
-from mapsqueeze.codec.container import TileCoding, open_container
+from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, TileCoding, open_container
 from mapsqueeze.codec.decompress import iter_decoded_tiles, tile_world_bounds
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
@@ -50,14 +50,17 @@ def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision
 
 def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
                density: float | None = None, n_points: int | None = None,
-               progress: ProgressCallback | None = None) -> np.ndarray:
+               progress: ProgressCallback | None = None,
+               max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> np.ndarray:
     """.msq bytes (or a .msq file path) -> (K, 3) float64 world points.
 
     By default every tile gets back its original point count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
     tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
-    choose another density. model defaults to the one named in the file; its weights must match the file's.
+    choose another density. model defaults to the shipped model named in the file; its weights must match the
+    file's. A tile asked for more than max_tile_points points raises DecodeLimitError (a crafted file may claim
+    millions of points in a few bytes).
     """
-    tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress))
+    tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress, max_tile_points))
     return np.concatenate(tiles) if tiles else np.zeros((0, 3), dtype=np.float64)
 
 
@@ -122,7 +125,8 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
 
 def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, *, model=None,
                     bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
-                    progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None) -> int:
+                    progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None,
+                    max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> int:
     """Decode a .msq file (seeking to the tiles needed) and write the points atomically; returns the count.
 
     Tiles are decoded one at a time into a float64 spill file (in spill_dir, default the system's temporary
@@ -133,7 +137,8 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
     with tempfile.TemporaryDirectory(prefix="mapsqueeze-decoded-", dir=spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
         with open(spill_path, "wb") as stream:
-            for tile_points in iter_decoded_tiles(input_path, model, bbox, density, n_points, progress):
+            for tile_points in iter_decoded_tiles(input_path, model, bbox, density, n_points, progress,
+                                                  max_tile_points):
                 stream.write(np.ascontiguousarray(tile_points, dtype="<f8").tobytes())
         if os.path.getsize(spill_path) == 0:
             raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")

@@ -31,3 +31,7 @@ class SimulationError(MapsqueezeError):
 
 class BaselineError(MapsqueezeError):
     """A baseline codec is unavailable, was given a bad setting, or its external tool failed."""
+
+
+class DecodeLimitError(MapsqueezeError):
+    """A container asks for more decoded points than the decoder's limit allows (a guard against crafted files)."""

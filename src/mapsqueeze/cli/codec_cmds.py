@@ -12,6 +12,7 @@ from rich.table import Table
 from mapsqueeze import api
 from mapsqueeze.cli.app import app, parse_numbers
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS
+from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE
 
 
 @contextmanager
@@ -63,13 +64,18 @@ def decompress_command(
     density: float | None = typer.Option(None, "--density", metavar="PTS_PER_M3",
                                          help="points per m^3 of each tile's box (default: the original count)"),
     points: int | None = typer.Option(None, "--points", metavar="N", help="total number of points to decode"),
-    model: str | None = typer.Option(None, "--model", help="model to decode with (default: the one in the file)"),
+    model: str | None = typer.Option(None, "--model", help="model to decode with (default: the shipped model "
+                                                           "named in the file)"),
+    max_tile_points: int = typer.Option(DEFAULT_MAX_TILE_POINTS, "--max-tile-points", metavar="N", min=1,
+                                        max=MAX_POINTS_PER_TILE,
+                                        help="refuse to decode more points than this in one tile (a guard "
+                                             "against crafted files)"),
 ) -> None:
     """Decompress a .msq file to a point cloud."""
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
-                                    progress=progress)
+                                    progress=progress, max_tile_points=max_tile_points)
     Console().print(f"wrote {count:,} points to {output}")
 
 

@@ -19,8 +19,10 @@ import numpy as np
 
 from mapsqueeze.codec.embedding import CellGrid, Precision, QuantModel
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
+from mapsqueeze.codec.rawtile import axis_bits
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.bounds import bounding_box
+from mapsqueeze.io import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
 VERSION = 1
@@ -31,7 +33,12 @@ _MIN_ENTRY_BYTES = 3 + 1 + 12 + 1 + 1 + 1 + 4  # a tile table entry holds at lea
 _MAX_INDEX = 2**31
 MAX_HEADER_BYTES = 1 << 24
 MAX_POINTS_PER_TILE = 1 << 26
-"""Largest point count a tile may claim (a sanity bound that keeps a crafted file from exhausting memory)."""
+"""Largest point count a tile may hold (the format's bound; the compressor refuses larger tiles)."""
+DEFAULT_MAX_TILE_POINTS = 1 << 23
+"""Points decoded per tile at most unless the caller allows more (`max_tile_points`, CLI --max-tile-points): a
+file of a few hundred bytes may claim millions of points, and decoding 2^23 points takes about 1 GB."""
+MAX_TILE_SIZE_M = 10_000.0
+"""Largest tile side a header may state (metres); shipped models use 40 x 40 x 15 m."""
 BOUNDS_STEPS = 65535
 """Tile bounds are stored as uint16 fractions of the tile size (0.6 mm for a 40 m tile), rounded outwards."""
 
@@ -96,6 +103,14 @@ class Header:
         values = np.array([r_s, *tile_size, raw_step])
         if not (np.isfinite(values).all() and (values > 0).all() and np.isfinite(origin).all()):
             raise reader.fail("grid sizes must be positive and the origin finite")
+        if max(r_s, *tile_size) > MAX_TILE_SIZE_M:
+            raise reader.fail(f"tile size {tile_size} or r_s {r_s} beyond {MAX_TILE_SIZE_M:g} m")
+        if np.abs(origin).max() >= MAX_ABS_COORDINATE_M:
+            raise reader.fail(f"absurd origin {origin} (limit {MAX_ABS_COORDINATE_M:.0e} m from 0)")
+        try:
+            axis_bits(np.asarray(tile_size), raw_step)
+        except ValueError as exc:
+            raise reader.fail(str(exc)) from None
         if not 1 <= n_features <= 64:
             raise reader.fail(f"{n_features} embedding channels")
         header = cls(model_id, sha, precision, r_s, tile_size, origin, n_points, n_tiles, n_features, raw_step)
@@ -199,11 +214,13 @@ class ContainerReader:
         stream.seek(0, os.SEEK_END)
         self.file_size = stream.tell()
         preamble = self._read_at(0, _PREAMBLE.size, "file is too short to be a .msq container")
-        magic, version, _flags, body_length = _PREAMBLE.unpack(preamble)
+        magic, version, flags, body_length = _PREAMBLE.unpack(preamble)
         if magic != MAGIC:
             raise self._error("not a .msq container (bad magic bytes)")
         if version != VERSION:
             raise self._error(f"unsupported .msq version {version} (this mapsqueeze reads version {VERSION})")
+        if flags:
+            raise self._error(f"reserved flags 0x{flags:04x} set (written by a newer mapsqueeze?)")
         if body_length > MAX_HEADER_BYTES or _PREAMBLE.size + body_length + _CRC.size > self.file_size:
             raise self._error(f"header of {body_length} bytes does not fit in the file (truncated?)")
         body = self._read_at(_PREAMBLE.size, body_length + _CRC.size, "header truncated")
@@ -256,6 +273,9 @@ class ContainerReader:
                 raise self._error(f"{label}: unknown coding {coding}")
             if not 1 <= n_points <= MAX_POINTS_PER_TILE or any(a > b for a, b in zip(lo, hi)):
                 raise self._error(f"{label}: bad point count or bounds")
+            tile_low = np.asarray(self.header.origin) + np.asarray(index, dtype=np.float64) * self.header.tile_size
+            if np.abs(np.concatenate([tile_low, tile_low + self.header.tile_size])).max() >= MAX_ABS_COORDINATE_M:
+                raise self._error(f"{label}: absurd tile position (beyond {MAX_ABS_COORDINATE_M:.0e} m from 0)")
             if previous_index is not None and index <= previous_index:
                 raise self._error(f"{label}: tiles out of order or duplicated")
             if offset != expected_offset:

@@ -9,6 +9,7 @@ import numpy as np
 
 from mapsqueeze.codec.compress import ProgressCallback
 from mapsqueeze.codec.container import (
+    DEFAULT_MAX_TILE_POINTS,
     MAX_POINTS_PER_TILE,
     ContainerReader,
     Header,
@@ -19,7 +20,7 @@ from mapsqueeze.codec.container import (
 )
 from mapsqueeze.codec.embedding import Precision, decode_float, dequantise
 from mapsqueeze.codec.rawtile import decode_raw_tile
-from mapsqueeze.errors import ContainerError, InvalidPointCloudError, MapsqueezeError, ModelError
+from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.geometry.resample import resample_to_count
 
 MIN_DENSITY_EXTENT_M = 1.0
@@ -50,18 +51,23 @@ def tile_world_bounds(header: Header, entry: TileEntry) -> np.ndarray:
     return tile_origin(header, entry) + entry.bounds_m(np.asarray(header.tile_size))
 
 
-def target_counts(header: Header, entries: list[TileEntry], density: float | None, n_points: int | None) -> list[int]:
+def target_counts(header: Header, entries: list[TileEntry], density: float | None, n_points: int | None,
+                  max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> list[int]:
     """Points to decode per tile: the stored counts, `density` per m^3 of each tile's box, or `n_points` in all
-    (split in proportion to the stored counts, largest remainders first)."""
+    (split in proportion to the stored counts, largest remainders first). A count above `max_tile_points`
+    (at most MAX_POINTS_PER_TILE) raises DecodeLimitError before anything is decoded."""
     if density is not None and n_points is not None:
         raise InvalidPointCloudError("give either a density or a point count, not both")
+    if not 1 <= max_tile_points <= MAX_POINTS_PER_TILE:
+        raise InvalidPointCloudError(f"the points-per-tile limit must be 1 .. {MAX_POINTS_PER_TILE:,}, "
+                                     f"got {max_tile_points}")
     stored = np.array([entry.n_points for entry in entries], dtype=np.int64)
     if density is not None:
         if not (np.isfinite(density) and density > 0):
             raise InvalidPointCloudError(f"density must be a positive number of points per m^3, got {density}")
         sides = [np.maximum(entry.frame_extent_m(np.asarray(header.tile_size)), MIN_DENSITY_EXTENT_M)
                  for entry in entries]
-        counts = [int(round(density * float(np.prod(side)))) for side in sides]
+        counts = [int(min(round(density * float(np.prod(side))), 2**62)) for side in sides]
     elif n_points is not None:
         if n_points < 1:
             raise InvalidPointCloudError(f"point count must be at least 1, got {n_points}")
@@ -71,9 +77,10 @@ def target_counts(header: Header, entries: list[TileEntry], density: float | Non
         counts = [int(c) for c in counts]
     else:
         counts = [int(c) for c in stored]
-    if max(counts, default=0) > MAX_POINTS_PER_TILE:
-        raise InvalidPointCloudError(f"that asks for {max(counts):,} points in one tile; at most "
-                                     f"{MAX_POINTS_PER_TILE:,} can be decoded per tile")
+    if max(counts, default=0) > max_tile_points:
+        raise DecodeLimitError(f"that decodes {max(counts):,} points in one tile, more than the limit of "
+                               f"{max_tile_points:,} points per tile; allow more with --max-tile-points N "
+                               f"(API: max_tile_points=N, at most {MAX_POINTS_PER_TILE:,})")
     return counts
 
 
@@ -108,6 +115,8 @@ def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np
             else:
                 points, features = decode_float(payload, header.precision, tile_size, header.n_features,
                                                 entry.n_points, label)
+            if len(points) == 0:
+                raise ContainerError(f"{label}: network payload holds no embedding points")
             local = resample_to_count(keep_inside(model.decode(points, features), entry.frame_extent_m(tile_size)),
                                       count)
     except MapsqueezeError:
@@ -134,13 +143,14 @@ def iter_decoded_tiles(
     density: float | None = None,
     n_points: int | None = None,
     progress: ProgressCallback | None = None,
+    max_tile_points: int = DEFAULT_MAX_TILE_POINTS,
 ) -> Iterator[np.ndarray]:
     """Decode a .msq buffer or file tile by tile: yields each tile's (k, 3) float64 world points, in file order
     (tiles left empty by the counts or the bbox crop are skipped). Memory: one tile.
 
     model: a CompressionModel, a name or path (default: the model id stored in the file); its weights must match
     the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
-    read and decoded, and the output is cropped to it. density / n_points: see `target_counts`.
+    read and decoded, and the output is cropped to it. density / n_points / max_tile_points: see `target_counts`.
     """
     reader, stream = open_container(source)
     with stream:
@@ -148,7 +158,7 @@ def iter_decoded_tiles(
         box = None if bbox is None else parse_bbox(bbox)
         selected = [position for position, entry in enumerate(reader.entries)
                     if box is None or _intersects(tile_world_bounds(header, entry), box)]
-        counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points)
+        counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points, max_tile_points)
         if any(reader.entries[p].coding is TileCoding.network for p in selected):
             model = _load_matching_model(model, header, reader.name)
         for done, (position, count) in enumerate(zip(selected, counts), start=1):
@@ -167,14 +177,24 @@ def _intersects(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def _load_matching_model(model, header: Header, name: str):
-    from mapsqueeze.model import load_model
+    """The given model (object, shipped name or the user's path), or the shipped model the file names: a model id
+    read from a file never resolves to a path. Its weights and grid must match the file's."""
+    from mapsqueeze.model import load_model, shipped_models
 
     if model is None:
-        try:
-            model = load_model(header.model_id)
-        except ModelError as exc:
-            raise ModelError(f"{name} needs model {header.model_id!r}: {exc}; pass it with --model PATH") from None
+        if header.model_id not in shipped_models():
+            raise ModelError(f"{name} was compressed with model {header.model_id!r}, not a shipped model "
+                             f"({', '.join(shipped_models()) or 'none shipped'}); pass it with --model PATH")
+        model = load_model(header.model_id, shipped_only=True)
     elif isinstance(model, (str, os.PathLike)):
         model = load_model(model)
     check_model(model, header, name)
+    config = model.config
+    if header.n_features != config.embedding_dim:
+        raise ContainerError(f"{name}: the header states {header.n_features} embedding channels, model "
+                             f"{model.model_id!r} has {config.embedding_dim}")
+    if header.subsampling_dist_m != config.subsampling_dist or header.tile_size != tuple(config.tile_size):
+        raise ContainerError(f"{name}: the header's grid (r_s {header.subsampling_dist_m:g} m, tiles "
+                             f"{header.tile_size} m) differs from model {model.model_id!r}'s "
+                             f"(r_s {config.subsampling_dist:g} m, tiles {tuple(config.tile_size)} m)")
     return model

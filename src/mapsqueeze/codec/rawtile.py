@@ -50,16 +50,19 @@ def encode_raw_tile(points_local: np.ndarray, tile_size: np.ndarray, step_m: flo
     return writer.getvalue()
 
 
-def decode_raw_tile(payload: bytes, tile_size: np.ndarray, max_points: int, what: str,
+def decode_raw_tile(payload: bytes, tile_size: np.ndarray, n_points: int, what: str,
                     step_m: float = RAW_STEP_M) -> np.ndarray:
-    """Raw payload -> points (N, 3) float32 metres relative to the tile frame; N must not exceed `max_points`."""
+    """Raw payload -> points (N, 3) float32 metres relative to the tile frame; N must equal the table's `n_points`
+    (checked before anything is allocated)."""
     bits = axis_bits(tile_size, step_m)
     reader = ByteReader(payload, what)
-    count = reader.varint(limit=max_points + 1)
+    count = reader.varint(limit=2**63)
+    if count != n_points or count == 0:
+        raise reader.fail(f"raw payload holds {count} points, the tile table says {n_points}")
     buckets = Histogram.read(reader)
     symbols = SymbolReader(reader.raw(reader.remaining), what)
     codes = np.cumsum(decode_gaps(symbols, count, buckets))
     symbols.finish()
-    if count and (codes.min() < 0 or codes.max() >= 2 ** (3 * bits)):
+    if codes.min() < 0 or codes.max() >= 2 ** (3 * bits):
         raise reader.fail("raw point outside the tile")
     return (morton_cells(codes) * step_m).astype(np.float32)

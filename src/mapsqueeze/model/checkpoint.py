@@ -39,10 +39,11 @@ def shipped_models() -> list[str]:
     return sorted(p.name for p in SHIPPED_DIR.iterdir() if (p / WEIGHTS_FILE).is_file())
 
 
-def resolve_model_dir(name_or_path: str | Path) -> Path:
-    """A shipped model name (e.g. 'e1') or a directory holding config.json + model.safetensors."""
+def resolve_model_dir(name_or_path: str | Path, shipped_only: bool = False) -> Path:
+    """A shipped model name (e.g. 'e1') or, unless shipped_only, a directory holding config.json +
+    model.safetensors (a directory comes first)."""
     path = Path(name_or_path)
-    if (path / WEIGHTS_FILE).is_file():
+    if not shipped_only and (path / WEIGHTS_FILE).is_file():
         return path
     shipped = SHIPPED_DIR / str(name_or_path)
     if re.fullmatch(r"[A-Za-z0-9_.-]+", str(name_or_path)) and (shipped / WEIGHTS_FILE).is_file():
@@ -66,9 +67,10 @@ def load_network(model_dir: Path) -> tuple[Autoencoder, str]:
     return network, hashlib.sha256(weights_path.read_bytes()).hexdigest()
 
 
-def load_model(name_or_path: str | Path = "e1", device: str = "cpu") -> CompressionModel:
-    """Load a shipped or saved model for compression (eval mode)."""
-    model_dir = resolve_model_dir(name_or_path)
+def load_model(name_or_path: str | Path = "e1", device: str = "cpu", shipped_only: bool = False) -> CompressionModel:
+    """Load a shipped or saved model for compression (eval mode); shipped_only refuses paths (names read from
+    files)."""
+    model_dir = resolve_model_dir(name_or_path, shipped_only)
     network, sha = load_network(model_dir)
     return CompressionModel(network, network.config.name, sha, device=device)
 

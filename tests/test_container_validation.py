@@ -1,0 +1,226 @@
+"""Crafted .msq files with valid checksums: only validation can catch them (docs/format.md, "Integrity").
+
+Each case rewrites header fields or tile-table entries and recomputes every CRC; every outcome must be a typed
+MapsqueezeError or a correct decode. The fuzz test runs the decoder in a subprocess under a memory cap.
+"""
+
+import dataclasses
+import os
+import struct
+import subprocess
+import sys
+import textwrap
+import zlib
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import mapsqueeze
+from mapsqueeze.codec.container import (
+    DEFAULT_MAX_TILE_POINTS,
+    TileCoding,
+    TileRecord,
+    open_container,
+    serialise_container,
+)
+from mapsqueeze.codec.rawtile import encode_raw_tile
+from mapsqueeze.errors import ContainerError, DecodeLimitError, MapsqueezeError, ModelError
+from mapsqueeze.io import MAX_ABS_COORDINATE_M
+from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
+
+UTM = np.array([500_000.123, 4_000_000.456, 50.0])
+TILE = np.array([8.0, 8.0, 4.0])
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    config = ModelConfig.for_rate("e1", tile_size=tuple(TILE), map_size=8.0, max_input_points=2000)
+    return save_model(build_model(config, seed=1), tmp_path_factory.mktemp("model") / "tiny")
+
+
+@pytest.fixture(scope="module")
+def model(model_dir):
+    return load_model(model_dir)
+
+
+@pytest.fixture(scope="module")
+def map_points():
+    rng = np.random.default_rng(0)
+    ground = np.column_stack([rng.uniform(0, 14, 3000), rng.uniform(0, 7, 3000), rng.normal(0.5, 0.03, 3000)])
+    post = np.column_stack([rng.normal(13, 0.05, 4), rng.normal(1, 0.05, 4), rng.uniform(4.5, 7.5, 4)])
+    return np.concatenate([ground, post]) + UTM
+
+
+@pytest.fixture(scope="module")
+def compressed(map_points, model):
+    return mapsqueeze.compress(map_points, model=model, precision="f16")
+
+
+def parts(data: bytes):
+    """(header, table records) of a container, the records carrying their payloads."""
+    reader, stream = open_container(data)
+    with stream:
+        records = [TileRecord(e.index, e.n_points, e.bounds_lo, e.bounds_hi, e.coding, reader.payload(p))
+                   for p, e in enumerate(reader.entries)]
+        return reader.header, records
+
+
+def craft(data: bytes, header_changes: dict | None = None, tile_changes: dict | None = None,
+          position: int = 0, flags: int = 0) -> bytes:
+    """The container with header fields / one tile's record replaced and every CRC recomputed."""
+    header, records = parts(data)
+    header = dataclasses.replace(header, **(header_changes or {}))
+    records[position] = dataclasses.replace(records[position], **(tile_changes or {}))
+    out = bytearray(serialise_container(header, records))
+    if flags:
+        struct.pack_into("<H", out, 6, flags)
+        body_end = 12 + struct.unpack_from("<I", out, 8)[0]
+        struct.pack_into("<I", out, body_end, zlib.crc32(bytes(out[:body_end])))
+    return bytes(out)
+
+
+def test_crafting_without_changes_keeps_the_bytes(compressed):
+    assert craft(compressed) == compressed
+
+
+def test_raw_tile_with_no_points_is_refused(compressed, model):
+    header, records = parts(compressed)
+    position = next(p for p, r in enumerate(records) if r.coding is TileCoding.raw)
+    empty = encode_raw_tile(np.zeros((0, 3)), TILE)
+    data = craft(compressed, tile_changes={"payload": empty}, position=position)
+    with pytest.raises(ContainerError, match="raw payload holds 0 points"):
+        mapsqueeze.decompress(data, model=model)
+
+
+def test_header_feature_channels_must_match_the_model(compressed, model):
+    data = craft(compressed, header_changes={"n_features": 4})
+    with pytest.raises(ContainerError, match="4 embedding channels.*3"):
+        mapsqueeze.decompress(data, model=model)
+
+
+def test_decompression_bomb_is_refused_with_the_option_that_allows_it(map_points, model):
+    raw_only = mapsqueeze.compress(map_points[-4:], model=model, precision="f16")  # one sparse raw tile
+    header, records = parts(raw_only)
+    claim = DEFAULT_MAX_TILE_POINTS + 1
+    bomb = craft(raw_only, header_changes={"n_points": claim}, tile_changes={"n_points": claim})
+    with pytest.raises(DecodeLimitError, match="max-tile-points"):
+        mapsqueeze.decompress(bomb, model=model)
+    with pytest.raises(DecodeLimitError, match="max-tile-points"):
+        mapsqueeze.decompress(raw_only, model=model, n_points=claim)
+    # The limit is an option: a small claim passes when allowed, and the raw payload's count must match.
+    assert len(mapsqueeze.decompress(raw_only, model=model, max_tile_points=4)) == 4
+    with pytest.raises(DecodeLimitError, match="max-tile-points"):
+        mapsqueeze.decompress(raw_only, model=model, max_tile_points=3)
+    liar = craft(raw_only, header_changes={"n_points": 1000}, tile_changes={"n_points": 1000})
+    with pytest.raises(ContainerError, match="holds 4 points.*1000"):
+        mapsqueeze.decompress(liar, model=model)
+
+
+@pytest.mark.parametrize("changes", [
+    {"header_changes": {"origin": (1e300, 0.0, 0.0)}},
+    {"header_changes": {"origin": (-MAX_ABS_COORDINATE_M, 0.0, 0.0)}},
+    {"tile_changes": {"index": (2**31 - 1, 0, 0)}, "position": -1},
+    {"header_changes": {"tile_size": (1e9, 8.0, 4.0)}},
+])
+def test_absurd_coordinates_are_refused_by_the_api(compressed, model, changes):
+    data = craft(compressed, **changes)
+    with pytest.raises(ContainerError, match="absurd|tile size"):
+        mapsqueeze.decompress(data, model=model)
+    with pytest.raises(ContainerError):
+        mapsqueeze.info(data)
+
+
+def test_reserved_flags_are_refused(compressed, model):
+    with pytest.raises(ContainerError, match="reserved flags 0x0004"):
+        mapsqueeze.decompress(craft(compressed, flags=4), model=model)
+
+
+def test_model_id_resolves_only_to_shipped_models(compressed, model_dir, tmp_path, monkeypatch):
+    # A file naming a model folder (absolute, or relative to the working directory) does not load it.
+    for name in (str(model_dir), "tiny"):
+        data = craft(compressed, header_changes={"model_id": name})
+        monkeypatch.chdir(model_dir.parent)
+        with pytest.raises(ModelError, match="not a shipped model.*--model"):
+            mapsqueeze.decompress(data)
+        assert len(mapsqueeze.decompress(data, model=str(model_dir))) > 0  # the user's --model works
+
+
+def test_good_file_still_decodes(compressed, model, map_points):
+    assert len(mapsqueeze.decompress(compressed, model=model)) == len(map_points)
+
+
+# --- property-based mutation of header fields and tile-table entries (checksums recomputed) ---------------------
+
+_DECODE_UNDER_CAP = textwrap.dedent("""
+    import resource, sys
+    resource.setrlimit(resource.RLIMIT_AS, ({cap}, {cap}))
+    import mapsqueeze
+    from mapsqueeze.errors import MapsqueezeError
+    from mapsqueeze.model import load_model
+    model = load_model(sys.argv[2])
+    for path in sys.argv[3:]:
+        try:
+            points = mapsqueeze.decompress(open(path, "rb").read(), model=model)
+            print("decoded", len(points), flush=True)
+        except MapsqueezeError as exc:
+            print("error", type(exc).__name__, flush=True)
+""")
+
+_HEADER_FIELDS = st.one_of(
+    st.builds(lambda v: {"n_points": v}, st.integers(0, 2**64 - 1)),
+    st.builds(lambda v: {"n_tiles": v}, st.integers(0, 2**32 - 1)),
+    st.builds(lambda v: {"n_features": v}, st.integers(0, 255)),
+    st.builds(lambda v: {"subsampling_dist_m": v}, st.floats(allow_nan=True, allow_infinity=True)),
+    st.builds(lambda v: {"raw_step_m": v}, st.floats(allow_nan=True, allow_infinity=True)),
+    st.builds(lambda v: {"tile_size": v}, st.tuples(*[st.floats(-1e12, 1e12)] * 3)),
+    st.builds(lambda v: {"origin": v}, st.tuples(*[st.floats(allow_nan=True, allow_infinity=True)] * 3)),
+    st.builds(lambda v: {"model_id": v}, st.text(max_size=40)),
+)
+_TILE_FIELDS = st.one_of(
+    st.builds(lambda v: {"index": v}, st.tuples(*[st.integers(-2**31 + 1, 2**31 - 1)] * 3)),
+    st.builds(lambda v: {"n_points": v}, st.integers(0, 2**32 - 1)),
+    st.builds(lambda v: {"bounds_lo": v}, st.tuples(*[st.integers(0, 65535)] * 3)),
+    st.builds(lambda v: {"bounds_hi": v}, st.tuples(*[st.integers(0, 65535)] * 3)),
+    st.builds(lambda v: {"coding": v}, st.sampled_from(list(TileCoding))),
+    st.builds(lambda v: {"payload": v}, st.binary(max_size=64)),
+)
+FUZZ_EXAMPLES = int(os.environ.get("MAPSQUEEZE_FUZZ_EXAMPLES", "25"))
+MEMORY_CAP_BYTES = 3 << 30
+
+
+def test_fuzzed_headers_and_tables_give_typed_errors_or_decodes(compressed, model_dir, model, tmp_path):
+    crafted: list[bytes] = []
+
+    @settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=True,
+              suppress_health_check=list(HealthCheck))
+    @given(st.lists(_HEADER_FIELDS, max_size=2), _TILE_FIELDS, st.integers(0, 100), st.booleans())
+    def mutate(header_fields, tile_fields, position, sum_points):
+        header_changes = {k: v for fields in header_fields for k, v in fields.items()}
+        header, records = parts(compressed)
+        if "n_points" in tile_fields and sum_points and "n_points" not in header_changes:
+            moved = records[position % len(records)].n_points
+            header_changes["n_points"] = header.n_points - moved + tile_fields["n_points"]  # keep the sum valid
+        try:
+            crafted.append(craft(compressed, header_changes, tile_fields, position % len(records)))
+        except (ValueError, OverflowError, struct.error, UnicodeEncodeError):
+            pass  # a field the writer cannot even store
+
+    mutate()
+    paths = []
+    for number, data in enumerate(crafted):
+        paths.append(tmp_path / f"crafted{number}.msq")
+        paths[-1].write_bytes(data)
+    script = _DECODE_UNDER_CAP.format(cap=MEMORY_CAP_BYTES)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    result = subprocess.run([sys.executable, "-c", script, "x", str(model_dir), *map(str, paths)],
+                            capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    outcomes = result.stdout.split("\n")[:-1]
+    assert len(outcomes) == len(paths)
+    for path, outcome in zip(paths, outcomes):
+        kind, value = outcome.split(" ", 1)
+        if kind == "decoded":  # a field the decoder does not depend on (e.g. a bounds box the points still fit)
+            assert int(value) == parts(path.read_bytes())[0].n_points, path
+    assert len(outcomes) >= FUZZ_EXAMPLES // 2
