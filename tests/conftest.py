@@ -83,3 +83,13 @@ def run_cli(monkeypatch, capsys):
         return exit_info.value.code, captured.out, captured.err
 
     return run
+
+
+@pytest.fixture(scope="session")
+def tiny_model_dir(tmp_path_factory):
+    """A small randomly initialised model (8 x 8 x 4 m tiles, r_s = 2 m) saved to a folder: fast to run, and the
+    codec does not care whether the weights are trained."""
+    from mapsqueeze.model import ModelConfig, build_model, save_model
+
+    config = ModelConfig.for_rate("e1", tile_size=(8.0, 8.0, 4.0), map_size=8.0, max_input_points=2000)
+    return save_model(build_model(config, seed=1), tmp_path_factory.mktemp("model") / "tiny")

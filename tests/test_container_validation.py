@@ -28,16 +28,15 @@ from mapsqueeze.codec.container import (
 from mapsqueeze.codec.rawtile import encode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, MapsqueezeError, ModelError
 from mapsqueeze.io import MAX_ABS_COORDINATE_M
-from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
+from mapsqueeze.model import load_model
 
 UTM = np.array([500_000.123, 4_000_000.456, 50.0])
 TILE = np.array([8.0, 8.0, 4.0])
 
 
 @pytest.fixture(scope="module")
-def model_dir(tmp_path_factory):
-    config = ModelConfig.for_rate("e1", tile_size=tuple(TILE), map_size=8.0, max_input_points=2000)
-    return save_model(build_model(config, seed=1), tmp_path_factory.mktemp("model") / "tiny")
+def model_dir(tiny_model_dir):
+    return tiny_model_dir
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -20,7 +20,16 @@ from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, TileCoding, open
 from mapsqueeze.codec.decompress import iter_decoded_tiles, tile_world_bounds
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
-from mapsqueeze.io import atomic_write_bytes, format_name, iter_points, write_point_chunks
+from mapsqueeze.io import (
+    atomic_write_bytes,
+    check_output_path,
+    drop_zero_points,
+    format_name,
+    iter_points,
+    validate_points,
+    work_dir,
+    write_point_chunks,
+)
 from mapsqueeze.io.formats import DEFAULT_CHUNK_POINTS
 
 DEFAULT_MODEL = "e1"
@@ -37,14 +46,17 @@ def _model(model):
 
 
 def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision = DEFAULT_PRECISION, *,
-             refine_steps: int = 0, progress: ProgressCallback | None = None) -> bytes:
+             refine_steps: int = 0, progress: ProgressCallback | None = None, keep_zero_points: bool = False) -> bytes:
     """(N, 3) float64 map points (metres, e.g. UTM) -> .msq bytes.
 
     model: shipped name (e0..e3), model directory or loaded CompressionModel. precision: f32, f16 or q.
     refine_steps: encode-time refinement of each tile's embedding (0: the paper's encoder; 20: ~10 % lower D_e at
     the same size, encoding 10-45x slower on CPU; decoding unchanged). progress(done, total) is called after each tile.
+    Points at exactly (0, 0, 0), which sensors write for "no return", are left out unless keep_zero_points.
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
+    if not keep_zero_points:
+        points, _ = drop_zero_points(validate_points(points, name="map"), name="map")
     return compress_map(points, _model(model), precision, progress=progress, refine_steps=refine_steps)
 
 
@@ -80,6 +92,7 @@ class ContainerInfo:
     n_tiles: int
     n_raw_tiles: int
     bounds: np.ndarray  # (2, 3) world box of all tiles' points (metres)
+    zero_points_dropped: int = 0  # input points at exactly (0, 0, 0) left out (compress_file only)
 
     @property
     def bits_per_point(self) -> float:
@@ -110,31 +123,54 @@ def info(source: bytes | str | os.PathLike) -> ContainerInfo:
 
 def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=DEFAULT_MODEL,
                   precision: str | Precision = DEFAULT_PRECISION, *, refine_steps: int = 0,
-                  progress: ProgressCallback | None = None) -> ContainerInfo:
-    """Read a point-cloud file in chunks, compress it, write the .msq atomically; returns the written file's summary.
+                  progress: ProgressCallback | None = None, keep_zero_points: bool = False,
+                  format: str | None = None) -> ContainerInfo:
+    """Read a point-cloud file in chunks, compress it, write the .msq atomically; returns the written file's summary
+    (with `zero_points_dropped`, the points at exactly (0, 0, 0) left out unless keep_zero_points).
 
-    Memory is bounded by a chunk of the input and one tile (see `compress_chunks`), not by the map's size; the
-    bytes are those `compress(read_points(input_path), ...)` gives.
+    format: the input's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension). The output
+    path is checked before any work. Memory is bounded by a chunk of the input and one tile (see `compress_chunks`),
+    not by the map's size; the bytes are those `compress(read_points(input_path), ...)` gives.
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
-    data = compress_chunks(lambda: iter_points(input_path), _model(model), precision, progress=progress,
-                           refine_steps=refine_steps)
+    format_name(input_path, format)
+    check_output_path(output_path)
+    model = _model(model)
+    dropped = [0]
+
+    def chunks():
+        dropped[0] = kept = 0
+        for chunk in iter_points(input_path, format):
+            if not keep_zero_points:
+                chunk, n_zero = drop_zero_points(chunk, allow_empty=True)
+                dropped[0] += n_zero
+            kept += len(chunk)
+            if len(chunk):
+                yield chunk
+        if dropped[0] and not kept:
+            raise InvalidPointCloudError(f"{input_path}: all {dropped[0]:,} points lie at (0, 0, 0) (sensor "
+                                         "'no return' values); keep them with --keep-zero-points")
+
+    data = compress_chunks(chunks, model, precision, progress=progress, refine_steps=refine_steps)
     atomic_write_bytes(output_path, data)
-    return info(data)
+    return dataclasses.replace(info(data), zero_points_dropped=dropped[0])
 
 
 def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, *, model=None,
                     bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
                     progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None,
-                    max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> int:
+                    max_tile_points: int = DEFAULT_MAX_TILE_POINTS, format: str | None = None) -> int:
     """Decode a .msq file (seeking to the tiles needed) and write the points atomically; returns the count.
+
+    format: the output's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension).
 
     Tiles are decoded one at a time into a float64 spill file (in spill_dir, default the system's temporary
     directory; 24 bytes a point), which is then written out chunk by chunk: memory stays bounded by a tile and a
     chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`).
     """
-    format_name(output_path)  # an unknown output extension fails before any decoding
-    with tempfile.TemporaryDirectory(prefix="mapsqueeze-decoded-", dir=spill_dir) as spill:
+    format_name(output_path, format)  # an unknown output format or an unwritable path fails before any decoding
+    check_output_path(output_path)
+    with work_dir("mapsqueeze-decoded-", spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
         with open(spill_path, "wb") as stream:
             for tile_points in iter_decoded_tiles(input_path, model, bbox, density, n_points, progress,
@@ -145,6 +181,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
         points = np.memmap(spill_path, dtype="<f8", mode="r").reshape(-1, 3)
         try:
             return write_point_chunks(output_path, lambda: (points[start:start + DEFAULT_CHUNK_POINTS]
-                                                            for start in range(0, len(points), DEFAULT_CHUNK_POINTS)))
+                                                            for start in range(0, len(points), DEFAULT_CHUNK_POINTS)),
+                                      format)
         finally:
             del points  # release the mapping before the directory is removed

@@ -13,6 +13,10 @@ class InvalidPointCloudError(MapsqueezeError):
     """A point cloud is empty, has NaN/inf values, the wrong shape or absurd coordinates."""
 
 
+class OutputError(MapsqueezeError):
+    """An output file cannot be written: its folder is missing or read-only, or a directory has its name."""
+
+
 class ContainerError(MapsqueezeError):
     """A .msq container is truncated, corrupt or of an unsupported version."""
 

@@ -1,9 +1,16 @@
 """The one typer app; command modules register themselves on it (see cli/__init__.py)."""
 
+import sys
+
 import typer
+from rich.console import Console
+from typer.core import TyperOption
 
 from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.io import SUPPORTED_FORMATS
 from mapsqueeze.version import __version__
+
+FORMAT_HELP = f"one of {', '.join(SUPPORTED_FORMATS)} (default: from the extension)"
 
 app = typer.Typer(
     name="mapsqueeze",
@@ -37,3 +44,20 @@ def parse_numbers(text: str, count: int, option: str, meaning: str) -> list[floa
     if len(values) != count:
         raise MapsqueezeError(f"{option}: expected {meaning}, got {text!r}")
     return values
+
+
+def make_console(stderr: bool = False) -> Console:
+    """The console commands print through: rich on a terminal; piped or redirected, plain lines that are never
+    wrapped or coloured (rich would wrap at 80 columns and squeeze wide tables)."""
+    if (sys.stderr if stderr else sys.stdout).isatty():
+        return Console(stderr=stderr)
+    return Console(stderr=stderr, width=10_000, soft_wrap=True, no_color=True, highlight=False, emoji=False)
+
+
+def _flag_type(option: TyperOption, ctx) -> str | None:
+    """Help shows a boolean flag as `--json`, not `--json <bool>` (it takes no value)."""
+    return None if option.is_flag else _option_type(option, ctx)
+
+
+_option_type = TyperOption.display_type_rich
+TyperOption.display_type_rich = _flag_type

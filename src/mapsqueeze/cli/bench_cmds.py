@@ -6,12 +6,11 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 
-from mapsqueeze.cli.app import app
+from mapsqueeze.cli.app import app, make_console
 from mapsqueeze.errors import MapsqueezeError
 
-console = Console()
+console = make_console()
 
 
 def parse_refine_steps(text: str) -> list[int]:

@@ -5,12 +5,11 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from mapsqueeze import api
-from mapsqueeze.cli.app import app, parse_numbers
+from mapsqueeze.cli.app import FORMAT_HELP, app, make_console, parse_numbers
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS
 from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE
 
@@ -19,7 +18,7 @@ from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_T
 def _tile_progress(description: str) -> Iterator:
     """A progress(done, total) callback drawing a rich bar on stderr for maps of more than one tile."""
     bar = Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TextColumn("tiles"),
-                   TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+                   TimeRemainingColumn(), console=make_console(stderr=True), transient=True)
     task = None
 
     def update(done: int, total: int) -> None:
@@ -34,7 +33,8 @@ def _tile_progress(description: str) -> Iterator:
     try:
         yield update
     finally:
-        bar.stop()
+        if task is not None:
+            bar.stop()
 
 
 @app.command("compress")
@@ -47,12 +47,22 @@ def compress_command(
     refine: int = typer.Option(0, "--refine", min=0, max=MAX_REFINE_STEPS, metavar="STEPS",
                                help="encode-time refinement steps per tile: 20 lowers D_e ~10 % at the same size, "
                                     "encoding ~10x slower; 0 is the paper's encoder"),
+    in_format: str | None = typer.Option(None, "--format", metavar="FORMAT", help=f"format of MAP: {FORMAT_HELP}"),
+    keep_zero_points: bool = typer.Option(False, "--keep-zero-points",
+                                          help="keep points at exactly (0, 0, 0), which sensors write for 'no "
+                                               "return' (default: left out, with a count)"),
 ) -> None:
     """Compress a map: 40 x 40 x 15 m tiles, each encoded by the network (sparse tiles near-exactly)."""
     with _tile_progress("compressing") as progress:
-        summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, progress=progress)
-    Console().print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles, "
-                    f"{summary.file_bytes:,} bytes, {summary.bits_per_point:.4f} bits per point")
+        summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, progress=progress,
+                                    keep_zero_points=keep_zero_points, format=in_format)
+    console = make_console()
+    if summary.zero_points_dropped:
+        console.print(f"left out {summary.zero_points_dropped:,} points at exactly (0, 0, 0) (sensor 'no return' "
+                      "values; --keep-zero-points keeps them)")
+    console.print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles "
+                  f"({summary.n_raw_tiles} stored raw: too sparse for the network), {summary.file_bytes:,} bytes, "
+                  f"{summary.bits_per_point:.4f} bits per point")
 
 
 @app.command("decompress")
@@ -62,10 +72,13 @@ def decompress_command(
     bbox: str | None = typer.Option(None, "--bbox", metavar="x0,y0,z0,x1,y1,z1",
                                     help="decode only the tiles meeting this box (metres) and crop to it"),
     density: float | None = typer.Option(None, "--density", metavar="PTS_PER_M3",
-                                         help="points per m^3 of each tile's box (default: the original count)"),
+                                         help="points per m^3 of the bounding box of each tile's points, each "
+                                              "side at least 1 m (default: the original count)"),
     points: int | None = typer.Option(None, "--points", metavar="N", help="total number of points to decode"),
     model: str | None = typer.Option(None, "--model", help="model to decode with (default: the shipped model "
                                                            "named in the file)"),
+    out_format: str | None = typer.Option(None, "--format", metavar="FORMAT",
+                                          help=f"format of the output: {FORMAT_HELP}"),
     max_tile_points: int = typer.Option(DEFAULT_MAX_TILE_POINTS, "--max-tile-points", metavar="N", min=1,
                                         max=MAX_POINTS_PER_TILE,
                                         help="refuse to decode more points than this in one tile (a guard "
@@ -75,17 +88,24 @@ def decompress_command(
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
-                                    progress=progress, max_tile_points=max_tile_points)
-    Console().print(f"wrote {count:,} points to {output}")
+                                    progress=progress, max_tile_points=max_tile_points, format=out_format)
+    make_console().print(f"wrote {count:,} points to {output}")
 
 
 @app.command("info")
 def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq file")) -> None:
     """Show a .msq file's model, tiles, sizes, bits per point and origin."""
+    from mapsqueeze.model.checkpoint import shipped_weights_sha256
+
     summary = api.info(msq)
+    if shipped_weights_sha256(summary.model_id) == summary.weights_sha256:
+        model = f"{summary.model_id} (shipped; weights sha256 {summary.weights_sha256[:16]}...)"
+    else:
+        model = (f"custom, named {summary.model_id!r} (weights sha256 {summary.weights_sha256[:16]}..., not a "
+                 "shipped model: decompress needs --model PATH)")
     table = Table(show_header=False, box=None)
     rows = [
-        ("model", f"{summary.model_id} (weights sha256 {summary.weights_sha256[:16]}...)"),
+        ("model", model),
         ("precision", summary.precision),
         ("subsampling r_s", f"{summary.subsampling_dist_m:g} m"),
         ("tile size", " x ".join(f"{v:g}" for v in summary.tile_size) + " m"),
@@ -98,4 +118,4 @@ def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq f
     ]
     for name, value in rows:
         table.add_row(name, value)
-    Console().print(table)
+    make_console().print(table)

@@ -3,10 +3,9 @@
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.progress import Progress
 
-from mapsqueeze.cli.app import app, parse_numbers
+from mapsqueeze.cli.app import app, make_console, parse_numbers
 from mapsqueeze.data.mapping import (
     MAX_RANGE_M,
     MIN_RANGE_M,
@@ -71,7 +70,7 @@ def build_map(
     missing = [sequence.name for sequence in sequences if sequence.poses is None]
     if missing and not estimate:
         raise DataError(f"no poses for {', '.join(missing)}: give --poses FILE or --estimate-poses")
-    console = Console(stderr=True)
+    console = make_console(stderr=True)
     meta = {"min_range_m": min_range, "max_range_m": max_range, "voxel_size_m": voxel, "spacing_m": spacing,
             "size_m": list(box), "dz_m": dz, "centers": centers, "labels": labels}
     with Progress(console=console, transient=True) as progress:
@@ -108,4 +107,4 @@ def tile(
         for number, tile in enumerate(tiles)
     )
     write_dataset(out_dir, submaps, {"map": str(map_path), "tile_size_m": list(size)})
-    Console().print(f"{len(points):,} points -> {len(tiles):,} tiles in {out_dir}")
+    make_console().print(f"{len(points):,} points -> {len(tiles):,} tiles in {out_dir}")

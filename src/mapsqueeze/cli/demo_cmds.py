@@ -5,13 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-from mapsqueeze.cli.app import app
+from mapsqueeze.cli.app import app, make_console
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS
 
-console = Console()
+console = make_console()
 
 
 @app.command("demo")

@@ -5,10 +5,9 @@ import json
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-from mapsqueeze.cli.app import app
+from mapsqueeze.cli.app import app, make_console
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import read_points
 from mapsqueeze.metrics import IOU_VOXEL_M, Metrics, evaluate
@@ -53,4 +52,4 @@ def eval_command(
     if as_json:
         print(json.dumps(dataclasses.asdict(metrics)))
     else:
-        Console().print(_table(metrics))
+        make_console().print(_table(metrics))

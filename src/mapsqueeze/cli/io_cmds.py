@@ -3,32 +3,29 @@
 from pathlib import Path
 
 import typer
-from rich.console import Console
 
-from mapsqueeze.cli.app import app
-from mapsqueeze.io import SUPPORTED_FORMATS, dropped_fields, read_point_cloud, write_points
-
-_FORMAT_HELP = f"one of {', '.join(SUPPORTED_FORMATS)} (default: from the extension)"
+from mapsqueeze.cli.app import FORMAT_HELP, app, make_console
+from mapsqueeze.io import dropped_fields, read_point_cloud, write_points
 
 
 @app.command()
 def convert(
     input_path: Path = typer.Argument(..., metavar="IN", help="point-cloud file to read"),
     output_path: Path = typer.Argument(..., metavar="OUT", help="point-cloud file to write (atomically)"),
-    in_format: str | None = typer.Option(None, "--in-format", help=f"format of IN: {_FORMAT_HELP}"),
-    out_format: str | None = typer.Option(None, "--out-format", help=f"format of OUT: {_FORMAT_HELP}"),
+    in_format: str | None = typer.Option(None, "--in-format", help=f"format of IN: {FORMAT_HELP}"),
+    out_format: str | None = typer.Option(None, "--out-format", help=f"format of OUT: {FORMAT_HELP}"),
 ) -> None:
     """Convert a point cloud between formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD, LAS/LAZ, .npy), keeping
     every attribute and the LAS header's metadata the output format can hold."""
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
     warn_dropped(cloud.attributes, output_path, out_format)
-    Console().print(f"wrote {len(cloud):,} points to {output_path}")
+    make_console().print(f"wrote {len(cloud):,} points to {output_path}")
 
 
 def warn_dropped(names, output_path: Path, out_format: str | None = None) -> None:
     """One warning line on stderr naming the attributes the output format cannot hold, if any."""
     dropped = dropped_fields(names, output_path, out_format)
     if dropped:
-        Console(stderr=True).print(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; "
-                                   "not written", highlight=False, soft_wrap=True)
+        make_console(stderr=True).print(f"warning: {output_path.name} cannot hold attribute(s) "
+                                        f"{', '.join(dropped)}; not written", highlight=False, soft_wrap=True)

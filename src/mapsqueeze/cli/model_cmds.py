@@ -6,12 +6,11 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-from mapsqueeze.cli.app import app
+from mapsqueeze.cli.app import app, make_console
 
-console = Console()
+console = make_console()
 
 
 @app.command("import-depoco")

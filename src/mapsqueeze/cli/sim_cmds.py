@@ -4,10 +4,9 @@ import time
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from mapsqueeze.cli.app import app
+from mapsqueeze.cli.app import app, make_console
 from mapsqueeze.data.simulator import PRESETS, SENSORS, SimulationConfig, simulate_dataset
 from mapsqueeze.errors import SimulationError
 
@@ -56,7 +55,7 @@ def simulate(
     config = SimulationConfig(n_submaps=submaps, sensors=_names(sensor, "--sensor"),
                               presets=_names(preset, "--preset"), seed=seed, submaps_per_scene=per_scene,
                               scans_per_submap=_scan_range(scans), split=split)
-    console = Console(stderr=True)
+    console = make_console(stderr=True)
     start = time.perf_counter()
     columns = (TextColumn("simulating"), BarColumn(), MofNCompleteColumn(), TextColumn("submaps"),
                TimeElapsedColumn(), TimeRemainingColumn())

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -33,6 +32,7 @@ from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
 from mapsqueeze.geometry.validation import validate_points
+from mapsqueeze.io import work_dir
 
 RAW_POINTS_PER_EMBEDDING = 4
 """A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
@@ -123,7 +123,7 @@ def compress_chunks(
     if n_points == 0:
         raise InvalidPointCloudError("map: the point cloud is empty")
     origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
-    with tempfile.TemporaryDirectory(prefix="mapsqueeze-tiles-", dir=spill_dir) as spill:
+    with work_dir("mapsqueeze-tiles-", spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
         for chunk in chunks():
             for tile in tile_map(chunk, tile_size, origin=origin, shape=shape):

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import torch
 
 from mapsqueeze.geometry.bounds import bounding_box
+from mapsqueeze.geometry.jit import compiled
 from mapsqueeze.geometry.threads import run_over_ranges
 
 
@@ -89,7 +89,7 @@ def _cell_keys(points: np.ndarray, low: np.ndarray, cell: float, dims: np.ndarra
     return (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _capped_neighbors_kernel(cell_start, sorted_points, order, queries, first, stop, low, cell, dims, radius2,
                              max_neighbors, cells_per_radius, result, counts):
     """Fills result[first:stop] and counts[first:stop]: the capped in-radius neighbours of queries[first:stop]."""

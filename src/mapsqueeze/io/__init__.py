@@ -2,7 +2,7 @@
 LAS/LAZ, .npy). Points are (N, 3) float64 metres with named per-point attributes and file metadata (`PointCloud`); `formats` holds the
 table of formats, one module per family (tables, ply, pcd, las) their layouts and precision."""
 
-from mapsqueeze.io.atomic import atomic_output, atomic_write_bytes
+from mapsqueeze.io.atomic import atomic_output, atomic_write_bytes, check_output_path, work_dir
 from mapsqueeze.io.folders import is_point_cloud_path, point_cloud_files
 from mapsqueeze.io.formats import (
     DEFAULT_CHUNK_POINTS,
@@ -22,6 +22,7 @@ from mapsqueeze.io.pointcloud import (
     FLOAT32_MAX_ERROR_M,
     MAX_ABS_COORDINATE_M,
     PointCloud,
+    drop_zero_points,
     validate_attributes,
     validate_points,
 )
@@ -36,6 +37,8 @@ __all__ = [
     "PointCloud",
     "atomic_output",
     "atomic_write_bytes",
+    "check_output_path",
+    "drop_zero_points",
     "dropped_fields",
     "format_name",
     "is_point_cloud_path",
@@ -47,5 +50,6 @@ __all__ = [
     "validate_attributes",
     "validate_points",
     "write_point_chunks",
+    "work_dir",
     "write_points",
 ]

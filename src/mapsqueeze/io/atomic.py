@@ -1,20 +1,84 @@
-"""Atomic file output: write a temporary file beside the target, then `os.replace` it into place.
+"""Atomic file output: write a temporary file beside the target, then `os.replace` it into place; temporary
+work folders that a killed process leaves behind are removed by the next run.
 
 A reader never sees a half-written file, and a failed write leaves the target as it was (absent or the old
 version) with no temporary file behind. OSError (missing directory, no permission, disk full) propagates.
+Temporary files and folders carry the writing process's id (`.NAME.PID-RANDOM.tmp`, `PREFIXPID-RANDOM`), so
+those of dead processes (killed by SIGKILL, a crash, a power cut) are recognised and removed.
 """
 
 import os
+import re
 import secrets
+import shutil
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from mapsqueeze.errors import OutputError
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _remove_dead_processes_leftovers(folder: Path, pattern: re.Pattern) -> None:
+    """Remove the entries of `folder` owned by this user whose name matches `pattern` (group 1: a pid) and whose
+    process is gone."""
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for entry in entries:
+        match = pattern.fullmatch(entry.name)
+        try:
+            if not match or entry.stat(follow_symlinks=False).st_uid != os.getuid() or _process_alive(int(match[1])):
+                continue
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path, ignore_errors=True)
+            else:
+                os.unlink(entry.path)
+        except OSError:
+            continue
+
+
+def work_dir(prefix: str, dir: str | os.PathLike | None = None) -> tempfile.TemporaryDirectory:
+    """A temporary folder `PREFIX<pid>-<random>` in `dir` (default: the system's temporary directory), removed
+    on exit; folders of the same prefix left by dead processes are removed first."""
+    parent = Path(dir if dir is not None else tempfile.gettempdir())
+    _remove_dead_processes_leftovers(parent, re.compile(re.escape(prefix) + r"(\d+)-[A-Za-z0-9_]+"))
+    return tempfile.TemporaryDirectory(prefix=f"{prefix}{os.getpid()}-", dir=parent)
+
+
+def check_output_path(path: str | os.PathLike) -> None:
+    """OutputError unless a file can be written atomically at `path`: its folder exists and is writable (a
+    temporary file is created there and removed) and no directory has its name. Call it before long work."""
+    target = Path(path)
+    folder = target.parent
+    if target.is_dir():
+        raise OutputError(f"{target}: is a directory; give a file name")
+    if not folder.is_dir():
+        raise OutputError(f"{target}: folder {folder} does not exist")
+    try:
+        _create_temp_file(target).unlink()
+    except OSError as exc:
+        raise OutputError(f"{target}: cannot write in folder {folder} ({exc.strerror or exc})") from None
+
 
 def _create_temp_file(target: Path) -> Path:
-    """Create an empty, uniquely named file in the target's directory (mode 0o666 minus the umask)."""
+    """Create an empty, uniquely named file in the target's directory (mode 0o666 minus the umask); temporary
+    files of this target left by dead processes are removed first."""
+    leftover = re.compile(re.escape(f".{target.name}.") + r"(\d+)-[0-9a-f]+\.tmp")
+    _remove_dead_processes_leftovers(target.parent, leftover)
     while True:
-        temp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.tmp")
+        temp = target.with_name(f".{target.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
         try:
             os.close(os.open(temp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
         except FileExistsError:

@@ -54,6 +54,21 @@ class CloudStats:
             )
 
 
+def drop_zero_points(points: np.ndarray, name: str = "point cloud",
+                     allow_empty: bool = False) -> tuple[np.ndarray, int]:
+    """(points without the rows at exactly (0, 0, 0), how many were dropped). Sensors write (0, 0, 0) for "no
+    return" (7 % of a real binary PCD); kept, they decode to a blob at the sensor. A cloud of only such points
+    raises InvalidPointCloudError unless allow_empty."""
+    zero = ~points.any(axis=1)
+    n_zero = int(np.count_nonzero(zero))
+    if not n_zero:
+        return points, 0
+    if n_zero == len(points) and not allow_empty:
+        raise InvalidPointCloudError(f"{name}: all {n_zero:,} points lie at (0, 0, 0) (sensor 'no return' "
+                                     "values); keep them with --keep-zero-points")
+    return points[~zero], n_zero
+
+
 def validate_attributes(attributes: dict | None, num_points: int, name: str = "point cloud") -> dict[str, np.ndarray]:
     """Return the attributes as 1-D numeric arrays of length `num_points`, or raise InvalidPointCloudError.
 

@@ -39,6 +39,13 @@ def shipped_models() -> list[str]:
     return sorted(p.name for p in SHIPPED_DIR.iterdir() if (p / WEIGHTS_FILE).is_file())
 
 
+def shipped_weights_sha256(name: str) -> str | None:
+    """SHA-256 (hex) of a shipped model's weights file, or None when no shipped model has that name."""
+    if name not in shipped_models():
+        return None
+    return hashlib.sha256((SHIPPED_DIR / name / WEIGHTS_FILE).read_bytes()).hexdigest()
+
+
 def resolve_model_dir(name_or_path: str | Path, shipped_only: bool = False) -> Path:
     """A shipped model name (e.g. 'e1') or, unless shipped_only, a directory holding config.json +
     model.safetensors (a directory comes first)."""

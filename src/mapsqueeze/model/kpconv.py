@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import torch
 from torch import nn
 
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
+from mapsqueeze.geometry.jit import compiled
 from mapsqueeze.geometry.threads import run_over_ranges
 
 
@@ -74,7 +74,7 @@ class KPConv(nn.Module):
         return torch.clamp(1.0 - distances / self.sigma, min=0.0).transpose(1, 2)  # (Q, M, K)
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _influence_kernel(queries, source, neighbors, kernel_points, sigma, offset, first, stop, out):
     """Fills out[q - offset] for queries q in [first, stop) (see KPConv._cpu_influences)."""
     n_neighbors = neighbors.shape[1]

@@ -1,0 +1,202 @@
+"""The command line in odd environments and in a new user's hands: output paths, read-only homes, signals,
+leftovers of killed runs, zero points, --format, piped output, help text, info of a custom model."""
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mapsqueeze
+from mapsqueeze import api
+from mapsqueeze.io import read_points, write_points
+
+UTM = np.array([500_000.123, 4_000_000.456, 50.0])
+
+
+def ground(n: int = 3000, size_m: float = 14.0, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(0, size_m, n), rng.uniform(0, size_m / 2, n), rng.normal(0.5, 0.03, n)])
+
+
+@pytest.fixture
+def map_file(tmp_path):
+    path = tmp_path / "map.ply"
+    write_points(path, ground() + UTM)
+    return path
+
+
+def cli_subprocess(*args, **kwargs) -> subprocess.CompletedProcess:
+    """`mapsqueeze ARGS` in a fresh interpreter with this checkout's sources first on the path."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), **kwargs.pop("env", {})}
+    return subprocess.run([sys.executable, "-c", "from mapsqueeze.cli import main; main()", *map(str, args)],
+                          capture_output=True, text=True, env=env, **kwargs)
+
+
+# --- output path, checked before any work -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("target", ["missing/x.msq", "a-directory"])
+def test_compress_checks_the_output_path_before_compressing(run_cli, map_file, tiny_model_dir, tmp_path,
+                                                            monkeypatch, target):
+    (tmp_path / "a-directory").mkdir()
+    monkeypatch.setattr(api, "compress_chunks", lambda *a, **k: pytest.fail("compressed before the path check"))
+    code, out, err = run_cli("compress", str(map_file), "-o", str(tmp_path / target), "--model", str(tiny_model_dir))
+    assert code == 2 and out == "" and err.count("\n") == 1 and err.startswith("error: ")
+    assert ("does not exist" if "missing" in target else "is a directory") in err
+
+
+def test_decompress_checks_the_output_path_before_decoding(run_cli, map_file, tiny_model_dir, tmp_path):
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
+    code, _, err = run_cli("decompress", str(msq), "-o", str(tmp_path / "missing" / "x.ply"))
+    assert code == 2 and "does not exist" in err and err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_unwritable_package_home_and_output_folder(tiny_model_dir, map_file, tmp_path):
+    """A user who can write neither the package folder, nor ~/.cache, nor NUMBA_CACHE_DIR: the compiled kernels
+    still run (numba would refuse with "cannot cache function"), and an unwritable output folder is one error line.
+    Unwritable even for root: each `__pycache__` of the copied package, HOME and NUMBA_CACHE_DIR lie under plain
+    files, and the output folder is /proc."""
+    package = tmp_path / "pkg" / "mapsqueeze"
+    shutil.copytree(Path(mapsqueeze.__file__).parent, package, ignore=shutil.ignore_patterns("__pycache__", "*.nb?"))
+    for folder in package.rglob("*"):
+        if folder.is_dir():
+            (folder / "__pycache__").write_text("not a folder")
+    (package / "__pycache__").write_text("not a folder")
+    (tmp_path / "file").write_text("not a folder")
+    (tmp_path / "tmp").mkdir()
+    env = {**{k: v for k, v in os.environ.items() if k != "XDG_CACHE_HOME"},
+           "HOME": str(tmp_path / "file" / "home"), "NUMBA_CACHE_DIR": str(tmp_path / "file" / "numba"),
+           "TMPDIR": str(tmp_path / "tmp"), "PYTHONPATH": str(tmp_path / "pkg"), "PYTHONDONTWRITEBYTECODE": "1"}
+    run = [sys.executable, "-c", "from mapsqueeze.cli import main; main()"]
+    common = dict(capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
+    refused = subprocess.run([*run, "compress", str(map_file), "-o", "/proc/x.msq", "--model", str(tiny_model_dir)],
+                             **common)
+    assert refused.returncode == 2 and refused.stderr.startswith("error: /proc/x.msq: cannot write in folder /proc")
+    assert refused.stderr.count("\n") == 1
+    done = subprocess.run([*run, "compress", str(map_file), "-o", "x.msq", "--model", str(tiny_model_dir)], **common)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "x.msq").read_bytes() == mapsqueeze.compress(read_points(map_file), str(tiny_model_dir))
+
+
+# --- signals and leftovers of killed runs -----------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_sigterm_during_compress_removes_temporary_files(tiny_model_dir, tmp_path):
+    spill = tmp_path / "tmp"
+    spill.mkdir()
+    big = tmp_path / "big.ply"
+    write_points(big, np.concatenate([ground(30_000, 120.0, seed) for seed in range(2)]) + UTM)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "TMPDIR": str(spill)}
+    process = subprocess.Popen(
+        [sys.executable, "-c", "from mapsqueeze.cli import main; main()", "compress", str(big), "-o",
+         str(tmp_path / "big.msq"), "--model", str(tiny_model_dir), "--refine", "200"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 300
+    while not list(spill.glob("mapsqueeze-tiles-*")) and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.1)
+    assert list(spill.glob("mapsqueeze-tiles-*")), "compress did not start spilling tiles"
+    time.sleep(1.0)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM and err == "error: terminated\n"
+    assert list(spill.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["big.ply", "tmp"]
+
+
+def dead_pid() -> int:
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+def test_leftovers_of_dead_processes_are_removed_by_the_next_run(map_file, tiny_model_dir, tmp_path, monkeypatch):
+    spill = tmp_path / "tmp"
+    spill.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(spill))
+    pid = dead_pid()
+    stale = [spill / f"mapsqueeze-tiles-{pid}-abc_1", spill / f"mapsqueeze-decoded-{pid}-x9",
+             tmp_path / f".out.ply.{pid}-0a1b2c3d.tmp"]
+    alive = [spill / f"mapsqueeze-tiles-{os.getpid()}-live", spill / "mapsqueeze-tiles-nopid"]
+    for path in stale[:2] + alive:
+        path.mkdir()
+        (path / "tile_0_0_0.f64").write_bytes(b"x" * 24)
+    stale[2].write_bytes(b"partial")
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
+    assert stale[0].exists() is False and stale[1].exists()  # compress cleans its own prefix
+    mapsqueeze.decompress_file(msq, tmp_path / "out.ply", model=str(tiny_model_dir))
+    assert not any(path.exists() for path in stale) and all(path.exists() for path in alive)
+
+
+# --- a new user's first hour ------------------------------------------------------------------------------------
+
+def test_points_at_the_origin_are_dropped_by_default(run_cli, tiny_model_dir, tmp_path):
+    points = np.concatenate([ground(), np.zeros((70, 3))])
+    source = tmp_path / "scan.ply"
+    write_points(source, points)
+    code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "a.msq"), "--model", str(tiny_model_dir))
+    assert code == 0 and "left out 70 points at exactly (0, 0, 0)" in out
+    assert mapsqueeze.info(tmp_path / "a.msq").n_points == 3000
+    code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "b.msq"), "--model", str(tiny_model_dir),
+                           "--keep-zero-points")
+    assert code == 0 and "left out" not in out and mapsqueeze.info(tmp_path / "b.msq").n_points == 3070
+    # The API: the same default and flag, in memory and file to file.
+    points = read_points(source)
+    assert mapsqueeze.compress(points, model=str(tiny_model_dir)) == (tmp_path / "a.msq").read_bytes()
+    kept = mapsqueeze.compress(points, model=str(tiny_model_dir), keep_zero_points=True)
+    assert kept == (tmp_path / "b.msq").read_bytes()
+    write_points(source, np.zeros((5, 3)))
+    code, _, err = run_cli("compress", str(source), "-o", str(tmp_path / "c.msq"), "--model", str(tiny_model_dir))
+    assert code == 2 and "all 5 points lie at (0, 0, 0)" in err and "--keep-zero-points" in err
+
+
+def test_format_option_overrides_the_extension(run_cli, map_file, tiny_model_dir, tmp_path):
+    odd_input = tmp_path / "map.data"
+    shutil.copy(map_file, odd_input)
+    msq = tmp_path / "map.msq"
+    code, _, err = run_cli("compress", str(odd_input), "-o", str(msq), "--model", str(tiny_model_dir))
+    assert code == 2 and "unknown point-cloud extension" in err
+    code, out, _ = run_cli("compress", str(odd_input), "-o", str(msq), "--model", str(tiny_model_dir), "--format",
+                           "ply")
+    assert code == 0 and msq.stat().st_size > 0
+    code, _, _ = run_cli("decompress", str(msq), "-o", str(tmp_path / "out.xyz"), "--model", str(tiny_model_dir),
+                         "--format", "npy")
+    assert code == 0 and len(np.load(tmp_path / "out.xyz")) == 3000
+    code, _, err = run_cli("decompress", str(msq), "-o", str(tmp_path / "o.ply"), "--format", "xyz")
+    assert code == 2 and "unknown point-cloud format 'xyz'" in err
+
+
+def test_piped_output_is_not_wrapped(run_cli, map_file, tiny_model_dir, tmp_path):
+    deep = tmp_path / ("a-rather-long-folder-name-" * 4)
+    deep.mkdir()
+    code, out, _ = run_cli("compress", str(map_file), "-o", str(deep / "map.msq"), "--model", str(tiny_model_dir))
+    assert code == 0 and len(out.splitlines()) == 1 and out.rstrip().endswith("bits per point")
+    assert "stored raw" in out
+
+
+def test_help_shows_flags_without_a_value():
+    result = cli_subprocess("eval", "--help", timeout=120)
+    assert result.returncode == 0 and "--json" in result.stdout and "<bool>" not in result.stdout
+
+
+def test_info_names_a_custom_model_as_custom(run_cli, map_file, tiny_model_dir, tmp_path):
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
+    code, out, _ = run_cli("info", str(msq))
+    assert code == 0 and "custom, named 'e1'" in out and "--model PATH" in out
+
+
+def test_compress_reports_raw_tiles(run_cli, tiny_model_dir, tmp_path):
+    sparse = tmp_path / "sparse.ply"
+    write_points(sparse, np.concatenate([ground(3000), ground(5, seed=1) + [0, 0, 5]]) + UTM)
+    code, out, _ = run_cli("compress", str(sparse), "-o", str(tmp_path / "s.msq"), "--model", str(tiny_model_dir))
+    info = mapsqueeze.info(tmp_path / "s.msq")
+    assert code == 0 and info.n_raw_tiles >= 1 and f"({info.n_raw_tiles} stored raw" in out
+
