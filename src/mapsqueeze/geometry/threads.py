@@ -1,9 +1,12 @@
-"""Run a GIL-releasing compiled kernel over contiguous ranges of its rows on torch.get_num_threads() threads."""
+"""Run a GIL-releasing compiled kernel over contiguous ranges of its rows on torch.get_num_threads() threads, and
+run torch's own CPU operations on one thread where their results must not depend on the thread count."""
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -11,6 +14,34 @@ import torch
 
 _pool: ThreadPoolExecutor | None = None
 _pool_workers = 0
+_kernel_threads = 0  # the caller's thread count while `one_torch_thread` holds torch at one (0: none held)
+_pin_lock = threading.Lock()
+_pin_depth = 0
+
+
+@contextlib.contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """torch's CPU operations run on one thread inside the block, so their sums are added in one order whatever
+    thread count the caller set (MKL splits and blocks a matrix product differently for 1 and 2 threads, and with
+    several threads its order may vary from run to run): encoding then gives the same bytes every time. The
+    compiled kernels of `run_over_ranges`, whose rows are independent, keep the caller's thread count. Nests; the
+    caller's setting is restored on exit."""
+    global _kernel_threads, _pin_depth
+    with _pin_lock:
+        if _pin_depth == 0:
+            _kernel_threads = torch.get_num_threads()
+            if _kernel_threads > 1:
+                torch.set_num_threads(1)
+        _pin_depth += 1
+    try:
+        yield
+    finally:
+        with _pin_lock:
+            _pin_depth -= 1
+            if _pin_depth == 0:
+                if _kernel_threads > 1:
+                    torch.set_num_threads(_kernel_threads)
+                _kernel_threads = 0
 
 
 def _reset_pool_after_fork() -> None:
@@ -22,12 +53,13 @@ os.register_at_fork(after_in_child=_reset_pool_after_fork)
 
 
 def run_over_ranges(kernel: Callable[[int, int], object], n_rows: int, min_rows_per_thread: int = 256) -> None:
-    """Calls kernel(first, stop) on contiguous ranges covering range(n_rows), at most one per torch thread and
+    """Calls kernel(first, stop) on contiguous ranges covering range(n_rows), at most one per torch thread (the
+    caller's count inside `one_torch_thread`) and
     each of at least min_rows_per_thread rows, in parallel (the calling thread takes the first range); returns when
     all are done. The kernel must write disjoint outputs per range, so results do not depend on the thread count.
     One pool of worker threads serves every call (starting threads per call cost ~1 ms each)."""
     global _pool, _pool_workers
-    n_ranges = max(1, min(torch.get_num_threads(), n_rows // max(1, min_rows_per_thread)))
+    n_ranges = max(1, min(_kernel_threads or torch.get_num_threads(), n_rows // max(1, min_rows_per_thread)))
     bounds = np.linspace(0, n_rows, n_ranges + 1).astype(np.int64)
     if n_ranges - 1 > _pool_workers:  # more torch threads than before: a larger pool replaces the old one
         if _pool is not None:

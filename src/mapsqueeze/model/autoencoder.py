@@ -10,6 +10,7 @@ from torch import nn
 
 from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.resample import resample_to_count
+from mapsqueeze.geometry.threads import one_torch_thread
 from mapsqueeze.model.config import ModelConfig
 from mapsqueeze.model.deconv import AdaptiveDeconv
 from mapsqueeze.model.kpconv import EncoderBlock
@@ -101,8 +102,10 @@ class CompressionModel:
 
     @torch.no_grad()
     def encode(self, points_local: np.ndarray) -> Embedding:
-        """Tile-local points (N,3) metres -> embedding (positions in metres, features)."""
-        emb_points, emb_features = self.network.encoder(self._normalised_input(points_local))
+        """Tile-local points (N,3) metres -> embedding (positions in metres, features). Like `refine` and `decode`,
+        the same bytes whatever torch's thread count (`one_torch_thread`)."""
+        with one_torch_thread():
+            emb_points, emb_features = self.network.encoder(self._normalised_input(points_local))
         return self._embedding(emb_points, emb_features)
 
     def refine(self, points_local: np.ndarray, embedding: Embedding, steps: int) -> Embedding:
@@ -112,7 +115,8 @@ class CompressionModel:
         points, features = self._normalised_embedding(embedding.points, embedding.features)
         scale = np.float32(self.config.map_size)
         target = torch.from_numpy(np.asarray(points_local, dtype=np.float32) / scale).to(self.device)  # every point
-        points, features = refine_embedding(self.network.decoder, target, points, features, steps)
+        with one_torch_thread():
+            points, features = refine_embedding(self.network.decoder, target, points, features, steps)
         return self._embedding(points, features)
 
     def _normalised_input(self, points_local: np.ndarray) -> torch.Tensor:
@@ -140,7 +144,8 @@ class CompressionModel:
         p, f = self._normalised_embedding(points, features)
         if len(p) == 0:
             return np.zeros((0, 3), dtype=np.float32)
-        output, _ = self.network.decoder(p, f)
+        with one_torch_thread():
+            output, _ = self.network.decoder(p, f)
         cloud = output.cpu().numpy() * scale
         if not np.isfinite(cloud).all():
             raise ModelError(f"model {self.model_id!r} decoded non-finite coordinates (broken weights?)")
