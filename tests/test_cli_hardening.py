@@ -1,6 +1,7 @@
 """The command line in odd environments and in a new user's hands: output paths, read-only homes, signals,
 leftovers of killed runs, zero points, --format, piped output, help text, info of a custom model."""
 
+import json
 import os
 import shutil
 import signal
@@ -15,7 +16,9 @@ import pytest
 
 import mapsqueeze
 from mapsqueeze import api
+from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import read_points, write_points
+from mapsqueeze.metrics import EVALUATION_STAGES, evaluate
 
 UTM = np.array([500_000.123, 4_000_000.456, 50.0])
 
@@ -200,3 +203,57 @@ def test_compress_reports_raw_tiles(run_cli, tiny_model_dir, tmp_path):
     info = mapsqueeze.info(tmp_path / "s.msq")
     assert code == 0 and info.n_raw_tiles >= 1 and f"({info.n_raw_tiles} stored raw" in out
 
+
+
+def test_eval_warns_when_the_clouds_do_not_overlap(run_cli, tmp_path):
+    cloud = ground()
+    write_points(tmp_path / "gt.ply", cloud)
+    write_points(tmp_path / "near.ply", cloud + 0.01)
+    write_points(tmp_path / "far.ply", cloud + [1000.0, 0.0, 0.0])
+    write_points(tmp_path / "offset.ply", cloud + [12.0, 0.0, 0.0])  # 2 of 14 m overlap
+    code, _, err = run_cli("eval", str(tmp_path / "gt.ply"), str(tmp_path / "near.ply"))
+    assert code == 0 and err == ""
+    code, out, err = run_cli("eval", str(tmp_path / "gt.ply"), str(tmp_path / "far.ply"), "--json")
+    assert code == 0 and err.startswith("warning: the clouds do not overlap") and err.count("\n") == 1
+    assert json.loads(out)["d_e"] > 900
+    code, _, err = run_cli("eval", str(tmp_path / "gt.ply"), str(tmp_path / "offset.ply"))
+    assert code == 0 and "barely overlap" in err
+
+
+def test_evaluate_reports_its_stages():
+    cloud = ground()
+    stages = []
+    evaluate(cloud, cloud + 0.01, progress=stages.append)
+    assert stages == list(EVALUATION_STAGES)
+
+
+@pytest.mark.parametrize("name, content", [
+    ("objects.npy", None),
+    ("short.bin", b"\x00" * 10),
+    ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n2\n"),
+    ("empty.pcd", b""),
+    ("garbage.las", b"LASF" + b"\x00" * 50),
+    ("folder.ply", "dir"),
+])
+def test_file_errors_name_the_file_and_never_suggest_pickles(tmp_path, name, content):
+    path = tmp_path / name
+    if content is None:
+        np.save(path, np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    elif content == "dir":
+        path.mkdir()
+    else:
+        path.write_bytes(content)
+    with pytest.raises(MapsqueezeError) as error:
+        read_points(path)
+    assert str(error.value).startswith(f"{path}: ") and "pickle" not in str(error.value)
+
+
+def test_density_counts_the_box_of_each_tiles_points(tiny_model_dir):
+    cloud = ground()  # one 8 x 8 x 4 m tile of the tiny model holds x 0..8, y 0..7, z ~0.5 (a thin box: 1 m high)
+    data = mapsqueeze.compress(cloud[(cloud[:, 0] < 7.9)], model=str(tiny_model_dir), precision="f16")
+    info = mapsqueeze.info(data)
+    box_m3 = np.prod(np.maximum(info.bounds[1] - info.bounds[0], 1.0))
+    decoded = mapsqueeze.decompress(data, model=str(tiny_model_dir), density=20.0)
+    assert info.n_tiles == 1 and abs(len(decoded) - 20.0 * box_m3) <= 20.0 * 0.01 * box_m3
+    help_text = cli_subprocess("decompress", "--help", timeout=120).stdout
+    assert "bounding box of each" in " ".join(help_text.replace("│", " ").split())

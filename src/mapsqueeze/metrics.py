@@ -8,12 +8,14 @@ along the ground-truth normal (PCA over 50 cm, `geometry.normals`): for a ground
 for a reconstructed point the normal of its matched ground-truth point.
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.normals import normals_pca
 from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.geometry.voxel import pack_indices, voxel_indices
@@ -139,23 +141,52 @@ def bits_per_point(n_bytes: int, n_gt_points: int) -> float:
     return 8 * n_bytes / n_gt_points
 
 
+EVALUATION_STAGES = ("normals", "matching", "IoU")
+"""The stages `evaluate` reports to its progress callback, in order."""
+
+MAX_D_E_SHARE_OF_EXTENT = 0.1
+"""`overlap_warning` flags a D_e above this share of the ground truth's bounding-box diagonal."""
+
+
 def evaluate(
-    gt: np.ndarray, rec: np.ndarray, n_bytes: int | None = None, gt_normals: np.ndarray | None = None
+    gt: np.ndarray, rec: np.ndarray, n_bytes: int | None = None, gt_normals: np.ndarray | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> Metrics:
     """Every metric of reconstruction `rec` against ground truth `gt` ((N, 3) metres); bpp when `n_bytes` given.
 
     `gt_normals`: (N_gt, 3) normals of `gt`, to reuse them across several reconstructions of the same map.
+    `progress(stage)` is called as each of EVALUATION_STAGES starts (a 500k-point pair takes tens of seconds).
     """
+    report = progress or (lambda stage: None)
     gt, rec = validate_points(gt, "gt"), validate_points(rec, "rec")
     gt_tree = cKDTree(gt)
+    report(EVALUATION_STAGES[0])
     normals = _checked_normals(gt_normals, gt, gt_tree)
+    report(EVALUATION_STAGES[1])
     matching = _match(gt, rec, gt_tree)
+    d_e, d_perp = _d_euclidean(matching), _d_point_to_plane(gt, rec, normals, matching)
+    report(EVALUATION_STAGES[2])
     return Metrics(
-        d_e=_d_euclidean(matching),
-        d_perp=_d_point_to_plane(gt, rec, normals, matching),
+        d_e=d_e,
+        d_perp=d_perp,
         iou=_iou(gt, rec, IOU_VOXEL_M),
         chamfer=_chamfer(matching),
         bpp=None if n_bytes is None else bits_per_point(n_bytes, len(gt)),
         n_gt=len(gt),
         n_rec=len(rec),
     )
+
+
+def overlap_warning(gt: np.ndarray, rec: np.ndarray, d_e: float) -> str | None:
+    """Why the two clouds look like different places (bounding boxes disjoint, or D_e above
+    MAX_D_E_SHARE_OF_EXTENT of the ground truth's extent: another frame or offset?), or None."""
+    (gt_low, gt_high), (rec_low, rec_high) = bounding_box(gt), bounding_box(rec)
+    if (gt_high < rec_low).any() or (rec_high < gt_low).any():
+        return (f"the clouds do not overlap: ground truth spans {np.round(gt_low, 2).tolist()} .. "
+                f"{np.round(gt_high, 2).tolist()}, the reconstruction {np.round(rec_low, 2).tolist()} .. "
+                f"{np.round(rec_high, 2).tolist()} (different coordinate frames?)")
+    extent = float(np.linalg.norm(gt_high - gt_low))
+    if d_e > MAX_D_E_SHARE_OF_EXTENT * extent:
+        return (f"D_e {d_e:.3f} m is more than {MAX_D_E_SHARE_OF_EXTENT:.0%} of the ground truth's extent "
+                f"({extent:.1f} m diagonal): the clouds barely overlap (different coordinate frames?)")
+    return None

@@ -83,11 +83,32 @@ def select_points(points: np.ndarray, max_points: int, rng: np.random.Generator)
     return points[rng.choice(len(points), max_points, replace=False)]
 
 
+STEPS_BEFORE_RETIMING = 3
+"""With max_minutes, the one-cycle schedule is fitted to the time budget after this many optimiser steps."""
+
+
 def one_cycle(optimizer, total_steps: int, cfg: TrainConfig):
     return torch.optim.lr_scheduler.OneCycleLR(
         optimizer, max_lr=cfg.max_lr, total_steps=max(total_steps, 2), pct_start=cfg.pct_start,
         anneal_strategy="cos", div_factor=cfg.max_lr / cfg.start_lr, final_div_factor=cfg.start_lr / cfg.end_lr,
         cycle_momentum=False)
+
+
+def retime_one_cycle(scheduler, total_steps: int, cfg: TrainConfig) -> None:
+    """Stretch or shrink a one-cycle schedule (warm-up, then cosine decay) to `total_steps` in all, keeping the
+    steps already taken; the learning rate of the next step follows the new schedule."""
+    state = scheduler.state_dict()
+    total_steps = max(total_steps, scheduler.last_epoch + 2)
+    state["total_steps"] = total_steps
+    state["_schedule_phases"][0]["end_step"] = float(cfg.pct_start * total_steps) - 1
+    state["_schedule_phases"][-1]["end_step"] = total_steps - 1
+    scheduler.load_state_dict(state)
+
+
+def steps_within(minutes: float, elapsed_s: float, steps_taken: int, step_s: float) -> int:
+    """Optimiser steps a run reaches in `minutes` of wall time: the steps taken so far plus as many more of
+    `step_s` seconds as the remaining time holds."""
+    return steps_taken + max(0, int((60 * minutes - elapsed_s) / max(step_s, 1e-9)))
 
 
 @torch.no_grad()
@@ -121,7 +142,10 @@ def init_from(network: Autoencoder, source_dir: Path) -> int:
 
 def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainConfig, device: str = "cpu",
           resume: bool = True, init: Path | None = None, progress=None) -> dict:
-    """Train and keep `out_dir/best` (lowest validation Chamfer) and `out_dir/last` (+ optimiser state) up to date.
+    """Train and keep `out_dir/best` (lowest validation Chamfer; lowest training Chamfer when the dataset has no
+    validation submaps) and `out_dir/last` (+ optimiser state) up to date. The one-cycle schedule spans
+    cfg.epochs, or cfg.max_steps, or (cfg.max_minutes) the steps that fit in the time budget at the speed of the
+    first STEPS_BEFORE_RETIMING steps, whichever is fewest.
 
     Returns a summary dict (also written to out_dir/summary.json).
     """
@@ -158,6 +182,10 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
         writer.writerow(["epoch", "step", "lr", "train_loss", "train_chamfer_m2", "val_chamfer_m2", "seconds"])
     scale = model_config.map_size
     t0 = time.time()
+    first_step, planned_steps = step, cfg.epochs * steps_per_epoch
+    if cfg.max_steps:
+        planned_steps = min(planned_steps, cfg.max_steps)
+        retime_one_cycle(scheduler, planned_steps, cfg)
     stop = False
     network.train()
     for epoch in range(start_epoch, cfg.epochs):
@@ -180,20 +208,26 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
                 optimizer.zero_grad()
                 scheduler.step()
                 step += 1
+                if cfg.max_minutes and step - first_step == STEPS_BEFORE_RETIMING:  # fit the cycle to the time
+                    elapsed = time.time() - t0
+                    budget = steps_within(cfg.max_minutes, elapsed, step, elapsed / STEPS_BEFORE_RETIMING)
+                    retime_one_cycle(scheduler, min(planned_steps, budget), cfg)
                 if progress is not None:
                     progress(epoch, step, float(np.mean(losses[-cfg.batch_size:])))
                 if (cfg.max_steps and step >= cfg.max_steps) or (
                         cfg.max_minutes and time.time() - t0 > 60 * cfg.max_minutes):
                     stop = True
                     break
+        # Without validation submaps the training Chamfer picks best/, and is named as such everywhere.
         val = validate(network, val_set, dev) if val_set else float(np.mean(chamfers))
         writer.writerow([epoch + 1, step, f"{scheduler.get_last_lr()[0]:.3e}", f"{np.mean(losses):.6f}",
-                         f"{np.mean(chamfers):.6f}", f"{val:.6f}", f"{time.time() - t0:.1f}"])
+                         f"{np.mean(chamfers):.6f}", f"{val:.6f}" if val_set else "", f"{time.time() - t0:.1f}"])
         log.flush()
         if val < best:
             best = val
             network.config.extra = {**network.config.extra, "epochs": epoch + 1, "steps": step,
-                                    "val_chamfer_m2": val, "dataset": str(dataset), "beta": cfg.beta}
+                                    "val_chamfer_m2" if val_set else "train_chamfer_m2": val,
+                                    "dataset": str(dataset), "beta": cfg.beta}
             save_model(network, out_dir / "best")
         save_model(network, out_dir / "last")
         torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch + 1,
@@ -201,7 +235,8 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
         if stop:
             break
     log.close()
-    summary = {"best_val_chamfer_m2": best, "steps": step, "minutes": (time.time() - t0) / 60,
+    summary = {"best_val_chamfer_m2": best if val_set else None, "best_train_chamfer_m2": None if val_set else best,
+               "steps": step, "planned_steps": scheduler.total_steps, "minutes": (time.time() - t0) / 60,
                "train_config": asdict(cfg), "train_submaps": len(train_set), "val_submaps": len(val_set)}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if not (out_dir / "best" / "model.safetensors").is_file():

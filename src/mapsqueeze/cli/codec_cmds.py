@@ -17,8 +17,9 @@ from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_T
 @contextmanager
 def _tile_progress(description: str) -> Iterator:
     """A progress(done, total) callback drawing a rich bar on stderr for maps of more than one tile."""
+    console = make_console(stderr=True)
     bar = Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TextColumn("tiles"),
-                   TimeRemainingColumn(), console=make_console(stderr=True), transient=True)
+                   TimeRemainingColumn(), console=console, transient=True, disable=not console.is_terminal)
     task = None
 
     def update(done: int, total: int) -> None:

@@ -5,12 +5,13 @@ import json
 from pathlib import Path
 
 import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from mapsqueeze.cli.app import app, make_console
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import read_points
-from mapsqueeze.metrics import IOU_VOXEL_M, Metrics, evaluate
+from mapsqueeze.metrics import EVALUATION_STAGES, IOU_VOXEL_M, Metrics, evaluate, overlap_warning
 
 
 def _compressed_size(n_bytes: int | None, compressed: Path | None) -> int | None:
@@ -48,7 +49,18 @@ def eval_command(
 ) -> None:
     """D_e, D_perp, IoU, Chamfer and bits per point of RECON against GT (the paper's Sec. IV-A metrics)."""
     size = _compressed_size(n_bytes, compressed)
-    metrics = evaluate(read_points(gt), read_points(recon), n_bytes=size)
+    stages = ("reading", *EVALUATION_STAGES)
+    console = make_console(stderr=True)
+    bar = Progress(TextColumn("evaluating: {task.description}"), BarColumn(), MofNCompleteColumn(),
+                   TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal)
+    with bar:
+        task = bar.add_task(stages[0], total=len(stages))
+        gt_points, recon_points = read_points(gt), read_points(recon)
+        metrics = evaluate(gt_points, recon_points, n_bytes=size, progress=lambda stage: bar.update(
+            task, advance=1, description=stage))
+    warning = overlap_warning(gt_points, recon_points, metrics.d_e)
+    if warning:
+        console.print(f"warning: {warning}")
     if as_json:
         print(json.dumps(dataclasses.asdict(metrics)))
     else:

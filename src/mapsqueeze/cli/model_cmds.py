@@ -59,7 +59,8 @@ def train_cmd(
     max_lr: float = typer.Option(1e-4, min=0.0),
     beta: float = typer.Option(0.2, min=0.0, help="Weight of the intermediate Chamfer terms (0 = ablation)"),
     max_steps: Optional[int] = typer.Option(None, min=1, help="Stop after this many optimiser steps"),
-    max_minutes: Optional[float] = typer.Option(None, min=0.0, help="Stop after this many minutes"),
+    max_minutes: Optional[float] = typer.Option(None, min=0.0, help="Stop after this many minutes (the one-cycle "
+                                                "schedule is fitted to the steps that fit in them)"),
     init: Optional[Path] = typer.Option(None, help="Initialise matching weights from another model folder"),
     density_a: Optional[float] = typer.Option(None, help="Density law a (default: the paper's 0.006)"),
     density_b: Optional[float] = typer.Option(None, help="Density law b (default: the paper's 1.764)"),
@@ -83,8 +84,12 @@ def train_cmd(
         task = bar.add_task("train", total=max_steps, epoch=0, loss=float("nan"))
         summary = train(dataset, out, model_config, cfg, device=device, resume=not no_resume, init=init,
                         progress=lambda e, s, l: bar.update(task, completed=s, epoch=e + 1, loss=l))
-    console.print(f"best validation Chamfer {summary['best_val_chamfer_m2']:.5f} m^2 after {summary['steps']} "
-                  f"steps ({summary['minutes']:.1f} min) -> {out / 'best'}")
+    if summary["best_val_chamfer_m2"] is None:
+        best = (f"no validation submaps: best/ holds the lowest training Chamfer, "
+                f"{summary['best_train_chamfer_m2']:.5f} m^2,")
+    else:
+        best = f"best validation Chamfer {summary['best_val_chamfer_m2']:.5f} m^2"
+    console.print(f"{best} after {summary['steps']} steps ({summary['minutes']:.1f} min) -> {out / 'best'}")
 
 
 @app.command("models")

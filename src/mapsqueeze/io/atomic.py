@@ -72,6 +72,17 @@ def check_output_path(path: str | os.PathLike) -> None:
         raise OutputError(f"{target}: cannot write in folder {folder} ({exc.strerror or exc})") from None
 
 
+def _new_file_mode() -> int:
+    """0o666 minus the process's umask: the mode `open` gives a new file."""
+    try:
+        with open("/proc/self/status") as status:  # Linux: read without changing it
+            mask = next(int(line.split()[1], 8) for line in status if line.startswith("Umask:"))
+    except (OSError, StopIteration, ValueError):
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return 0o666 & ~mask
+
+
 def _create_temp_file(target: Path) -> Path:
     """Create an empty, uniquely named file in the target's directory (mode 0o666 minus the umask); temporary
     files of this target left by dead processes are removed first."""
@@ -103,6 +114,7 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield temp
         _fsync(temp)
+        os.chmod(temp, _new_file_mode())  # a library may have replaced the file with a private one (safetensors)
         os.replace(temp, target)
     except BaseException:
         temp.unlink(missing_ok=True)

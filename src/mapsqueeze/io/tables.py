@@ -123,8 +123,9 @@ def _npy_table(path: Path, mmap_mode: str | None) -> np.ndarray:
     """A numeric N x (>= 3) .npy array (memory-mapped with mmap_mode="r"), or raise."""
     try:
         table = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
-    except (ValueError, EOFError) as exc:
-        raise PointCloudFormatError(f"{path}: corrupt or non-numeric .npy file ({exc})") from None
+    except (ValueError, EOFError) as exc:  # numpy's advice for object arrays (allow pickles) would run their code
+        reason = "it holds Python objects, not an N x 3 array of numbers" if "allow_pickle" in str(exc) else exc
+        raise PointCloudFormatError(f"{path}: corrupt or non-numeric .npy file ({reason})") from None
     if not isinstance(table, np.ndarray) or table.dtype.kind not in "iuf":
         raise PointCloudFormatError(f"{path}: .npy holds {getattr(table, 'dtype', type(table))}, expected numbers")
     if table.ndim != 2 or table.shape[1] < 3:

@@ -1,0 +1,56 @@
+"""Training runs a new user starts: no validation submaps, a time budget, the files written."""
+
+import json
+import stat
+
+import numpy as np
+import pytest
+import torch
+
+from mapsqueeze.data.mapping import Submap, write_dataset
+from mapsqueeze.train import TrainConfig, one_cycle, retime_one_cycle, steps_within
+
+
+@pytest.fixture
+def train_only_dataset(tmp_path):
+    rng = np.random.default_rng(0)
+    submaps = []
+    for index in range(2):
+        points = np.column_stack([rng.uniform(0, 40, 1500), rng.uniform(0, 40, 1500), rng.normal(1, 0.05, 1500)])
+        submaps.append(Submap(points, np.array([20.0, 20.0, 1.0]), np.array([[0, 0, 0], [40, 40, 15.0]]), "flat",
+                              index, None, "train"))
+    write_dataset(tmp_path / "data", submaps, {})
+    return tmp_path / "data"
+
+
+@pytest.mark.slow
+def test_training_without_validation_names_the_training_chamfer(run_cli, train_only_dataset, tmp_path):
+    out = tmp_path / "run"
+    code, printed, err = run_cli("train", str(train_only_dataset), "-o", str(out), "--rate", "e3", "--epochs", "2",
+                                 "--batch-size", "1", "--max-steps", "2")
+    assert code == 0, err
+    assert "best validation" not in printed and "no validation submaps" in printed
+    assert "lowest training Chamfer" in printed
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["best_val_chamfer_m2"] is None and summary["best_train_chamfer_m2"] > 0
+    config = json.loads((out / "best" / "config.json").read_text())
+    assert "val_chamfer_m2" not in config["extra"] and config["extra"]["train_chamfer_m2"] > 0
+    for name in ("model.safetensors", "config.json"):  # 0o666 minus the umask (0o022 here), as `open` makes
+        assert stat.S_IMODE((out / "best" / name).stat().st_mode) == 0o644
+
+
+def test_one_cycle_is_retimed_to_the_steps_that_fit():
+    cfg = TrainConfig()
+    parameter = torch.zeros(1, requires_grad=True)
+    optimiser = torch.optim.SGD([parameter], lr=cfg.max_lr)
+    scheduler = one_cycle(optimiser, 1000, cfg)  # 200 epochs' worth: 6 steps would stay in warm-up
+    rates = []
+    for step in range(1, 21):
+        optimiser.step()
+        scheduler.step()
+        rates.append(scheduler.get_last_lr()[0])
+        if step == 3:
+            retime_one_cycle(scheduler, steps_within(1.0, elapsed_s=9.0, steps_taken=3, step_s=3.0), cfg)
+    assert steps_within(1.0, 9.0, 3, 3.0) == 20
+    assert max(rates) > 0.9 * cfg.max_lr  # near the peak within the budget (unretimed: 2e-6 after 20 steps)
+    assert rates[-1] < 1.1 * cfg.end_lr  # and the cycle ends at its final rate
