@@ -22,7 +22,7 @@ from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.codec.rawtile import axis_bits
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.bounds import bounding_box
-from mapsqueeze.io import MAX_ABS_COORDINATE_M
+from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
 VERSION = 1
