@@ -48,5 +48,5 @@ def bench_cmd(
                              models=[m.strip() for m in models.split(",")] if models else None,
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
                              progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps, every=every)
-    console.print((out / "results.md").read_text())
+    console.print((out / "results.md").read_text(), markup=False, highlight=False)
     console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd*.png")
