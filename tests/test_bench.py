@@ -1,12 +1,15 @@
 """The rate-distortion benchmark and the shipped models."""
 
 import csv
+import json
 
 import numpy as np
 import pytest
+import torch
 from typer.testing import CliRunner
 
-from mapsqueeze.bench import run_benchmark
+import mapsqueeze
+from mapsqueeze.benchmark import Row, run_benchmark
 from mapsqueeze.cli import app
 from mapsqueeze.io import write_points
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model, shipped_models
@@ -31,8 +34,10 @@ def test_benchmark_writes_csv_table_and_plot(tmp_path):
         assert len(list(csv.DictReader(f))) == len(rows)
     table = (tmp_path / "out" / "results.md").read_text()
     assert "| mapsqueeze |" in table
-    per_cloud = [line for line in table.splitlines() if line.startswith("| street | mapsqueeze | e0,q |")]
-    assert len(per_cloud) == 1 and per_cloud[0].endswith(("| yes |", "| no |", "| outside front |"))
+    per_cloud = [line for line in table.splitlines() if line.startswith("| street | 9,000 | mapsqueeze | e0,q |")]
+    assert len(per_cloud) == 1 and per_cloud[0].endswith(("D_e wins, IoU wins |", "D_e wins, IoU loses |",
+                                                          "D_e loses, IoU wins |", "D_e loses, IoU loses |",
+                                                          "outside the front's bpp range |"))
     assert (tmp_path / "out" / "rd.png").stat().st_size > 10_000
     assert (tmp_path / "out" / "rd_street.png").stat().st_size > 10_000
 
@@ -72,7 +77,7 @@ def test_the_four_shipped_models_load_and_are_listed():
 
 
 def test_model_labels_are_unique_path_suffixes():
-    from mapsqueeze.bench import unique_labels
+    from mapsqueeze.benchmark.variants import unique_labels
 
     assert unique_labels(["e1", "runs/x/e0"]) == ["e1", "e0"]
     assert unique_labels(["runs/a/best", "runs/b/best"]) == ["a/best", "b/best"]
@@ -99,25 +104,33 @@ def test_benchmark_resumes_and_extends_an_earlier_run(tmp_path, monkeypatch):
     assert len(again) == len(first) and len(encoded) == 2 * len(first)  # fresh: every octree row encoded again
 
 
-def test_per_cloud_comparison_against_any_front():
-    from mapsqueeze.bench import Row, per_cloud_comparison
+def _row(cloud, codec, setting, bpp, d_e, iou=0.5, n_points=1000):
+    return Row(cloud, codec, setting, "", n_points, int(bpp * n_points / 8), bpp, d_e, d_e / 2, iou, n_points, 0.1,
+               0.1)
 
-    def row(cloud, codec, setting, bpp, d_e):
-        return Row(cloud, codec, setting, 1000, int(bpp * 125), bpp, d_e, d_e / 2, 0.5, 1000, 0.1, 0.1)
 
-    rows = [row("a", "octree", "1", 0.1, 0.4), row("a", "octree", "2", 0.4, 0.2), row("a", "draco", "x", 0.2, 0.5),
-            row("a", "depoco-ref", "e0,f16", 0.1, 0.25), row("a", "depoco-ref", "e1,f16", 1.0, 0.1),
-            row("a", "mapsqueeze", "e0,q", 0.2, 0.3), row("a", "mapsqueeze", "e1,q", 2.0, 0.05),
-            row("b", "mapsqueeze", "e0,q", 0.2, 0.3)]
-    classical = {(r.cloud, r.codec, r.setting): ref for r, ref in per_cloud_comparison(rows)}
+def test_comparison_against_any_front_per_metric():
+    from mapsqueeze.benchmark.fronts import compare
+
+    rows = [_row("a", "octree", "1", 0.1, 0.4, iou=0.2), _row("a", "octree", "2", 0.4, 0.2, iou=0.3),
+            _row("a", "draco", "x", 0.2, 0.5, iou=0.6),
+            _row("a", "depoco-ref", "e0,f16", 0.1, 0.25), _row("a", "depoco-ref", "e1,f16", 1.0, 0.1),
+            _row("a", "mapsqueeze", "e0,q", 0.2, 0.3), _row("a", "mapsqueeze", "e1,q", 2.0, 0.05),
+            _row("b", "mapsqueeze", "e0,q", 0.2, 0.3)]
+    classical = {c.row.key(): c for c in compare(rows)}
     assert set(classical) == {("a", "depoco-ref", "e0,f16"), ("a", "depoco-ref", "e1,f16"),
                               ("a", "mapsqueeze", "e0,q"), ("a", "mapsqueeze", "e1,q"), ("b", "mapsqueeze", "e0,q")}
-    assert np.isclose(classical[("a", "mapsqueeze", "e0,q")], 0.3)  # draco's (0.2, 0.5) is off the front
-    assert np.isnan(classical[("a", "mapsqueeze", "e1,q")]) and np.isnan(classical[("b", "mapsqueeze", "e0,q")])
-    against_reference = per_cloud_comparison(rows, ("depoco-ref",), ("mapsqueeze",))
-    assert [(r.cloud, r.setting) for r, _ in against_reference] == [("a", "e0,q"), ("a", "e1,q"), ("b", "e0,q")]
-    assert np.isclose(against_reference[0][1], 0.25 - 0.15 * np.log(2) / np.log(10))
-    from mapsqueeze.bench import reference_comparison
+    at_02 = classical[("a", "mapsqueeze", "e0,q")]
+    assert np.isclose(at_02.front["d_e"], 0.3)  # draco's (0.2, 0.5) is off the D_e front
+    assert np.isclose(at_02.front["iou"], 0.6)  # ... and on the IoU front, where higher is better
+    assert np.isclose(at_02.ratio("d_e"), 1.0)
+    assert np.isclose(at_02.difference("iou"), -0.1) and not at_02.wins("iou")
+    assert not classical[("a", "mapsqueeze", "e1,q")].within_range()
+    assert not classical[("b", "mapsqueeze", "e0,q")].within_range()
+    against_reference = compare(rows, ("depoco-ref",), ("mapsqueeze",))
+    assert [(c.row.cloud, c.row.setting) for c in against_reference] == [("a", "e0,q"), ("a", "e1,q"), ("b", "e0,q")]
+    assert np.isclose(against_reference[0].front["d_e"], 0.25 - 0.15 * np.log(2) / np.log(10))
+    from mapsqueeze.benchmark.report import reference_comparison
 
     table = reference_comparison(rows)
     assert table[-3].startswith("| a | e0,q | 0.2000 | 0.3000 | 0.2048 | +46.5% | 0.2048 | +46.5% |")
@@ -125,16 +138,89 @@ def test_per_cloud_comparison_against_any_front():
     assert reference_comparison([r for r in rows if r.codec != "depoco-ref"]) == []
 
 
+def test_the_classical_front_is_every_registered_baseline(monkeypatch, tmp_path):
+    """A codec added to the baselines registry joins the front, and its points are scored in the cloud's frame."""
+    from mapsqueeze.baselines import BASELINES
+    from mapsqueeze.baselines.base import BaselineCodec
+    from mapsqueeze.benchmark.fronts import classical_codecs, compare
+
+    class Lossless(BaselineCodec):
+        name = "lossless"
+
+        def settings(self):
+            return [{"copy": 1}]
+
+        def encode(self, points, setting):
+            return np.asarray(points, dtype="<f8").tobytes()
+
+        def decode(self, data):
+            return np.frombuffer(data, dtype="<f8").reshape(-1, 3)
+
+    monkeypatch.setitem(BASELINES, "lossless", Lossless)
+    assert "lossless" in classical_codecs() and "gpcc" in classical_codecs()
+    write_points(tmp_path / "far.ply", np.random.default_rng(0).random((300, 3)) * 10 + [5e5, 4e6, 100.0])
+    rows = run_benchmark([tmp_path / "far.ply"], ["lossless"], tmp_path / "out", log=lambda m: None)
+    assert rows[0].d_e < 1e-6 and rows[0].iou == 1.0  # decoded points put back at the cloud's origin
+    learned = _row("far", "mapsqueeze", "e0,q", rows[0].bpp, 0.1)
+    assert np.isclose(compare(rows + [learned])[0].front["d_e"], rows[0].d_e)
+
+
+def test_report_states_wins_losses_and_the_target_per_cloud():
+    from mapsqueeze.benchmark.report import markdown_report
+
+    rows = [_row("map", "gpcc", "mode=trisoup,cell_m=0.1,node_log2=3", 0.1, 0.10, iou=0.40, n_points=100_000),
+            _row("map", "gpcc", "mode=trisoup,cell_m=0.1,node_log2=2", 0.4, 0.05, iou=0.60, n_points=100_000),
+            _row("map", "mapsqueeze", "e0,q", 0.1, 0.07, iou=0.45, n_points=100_000),
+            _row("map", "mapsqueeze", "e2,q", 0.4, 0.045, iou=0.5, n_points=100_000)]
+    lines = markdown_report(rows).splitlines()
+    e0 = next(line for line in lines if line.startswith("| map | 100,000 | mapsqueeze | e0,q |"))
+    assert "| 0.1000 | 0.0700 | 0.1000 | 0.700 |" in e0 and "| +0.050 |" in e0
+    assert e0.endswith("| D_e wins, IoU wins; target met |")
+    e2 = next(line for line in lines if line.startswith("| map | 100,000 | mapsqueeze | e2,q |"))
+    assert "| 0.900 |" in e2 and e2.endswith("| D_e wins, IoU loses; target missed |")
+    wins = [line for line in lines if line.startswith("| mapsqueeze | e0,q | 1 / 1 |")]
+    assert len(wins) == 1 and wins[0].endswith("| 0.700 | +0.050 | 1 / 1 |")
+
+
 def test_size_band_comparison_groups_clouds_by_point_count():
-    from mapsqueeze.bench import Row, size_band_comparison
+    from mapsqueeze.benchmark.fronts import Comparison
+    from mapsqueeze.benchmark.report import size_band_comparison
 
-    def row(cloud, n_points, d_e):
-        return Row(cloud, "mapsqueeze", "e1,q", n_points, 100, 0.8, d_e, d_e, 0.5, n_points, 0.1, 0.1)
+    def compared(cloud, n_points, d_e, front):
+        return Comparison(_row(cloud, "mapsqueeze", "e1,q", 0.8, d_e, n_points=n_points),
+                          {"d_e": front, "d_perp": front, "iou": 0.5})
 
-    comparison = [(row("sparse", 12_000, 0.15), 0.10), (row("scan", 30_000, 0.08), 0.10),
-                  (row("map_a", 90_000, 0.05), 0.10), (row("map_b", 200_000, 0.07), 0.10),
-                  (row("off_front", 200_000, 0.01), float("nan"))]
+    comparison = [compared("sparse", 12_000, 0.15, 0.10), compared("scan", 30_000, 0.08, 0.10),
+                  compared("map_a", 90_000, 0.05, 0.10), compared("map_b", 200_000, 0.07, 0.10),
+                  compared("off_front", 200_000, 0.01, float("nan"))]
     table = size_band_comparison(comparison)
     assert table[3] == "| codec | setting | 0 - 20,000 points | 20,000 - 50,000 points | >= 50,000 points |"
     assert table[5] == "| mapsqueeze | e1,q | +50.0% (0 / 1) | -20.0% (1 / 1) | -40.0% (2 / 2) |"
     assert size_band_comparison(comparison[-1:]) == []
+
+
+@pytest.mark.slow
+def test_resumed_run_reruns_rows_of_retrained_weights_and_records_them(tmp_path):
+    rng = np.random.default_rng(2)
+    write_points(tmp_path / "patch.ply", np.c_[rng.random((3000, 2)) * 20, rng.normal(0, 0.02, 3000)])
+    save_model(build_model(ModelConfig.for_rate("e0")), tmp_path / "e0")
+    first = run_benchmark([tmp_path / "patch.ply"], ["octree", "mapsqueeze"], tmp_path / "out",
+                          models=[str(tmp_path / "e0")], log=lambda m: None)
+    old_hash = load_model(str(tmp_path / "e0")).weights_sha256
+    assert {r.weights for r in first if r.codec == "mapsqueeze"} == {old_hash}
+    assert {r.weights for r in first if r.codec == "octree"} == {""}
+    record = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert record["model_weights_sha256"] == {"mapsqueeze:e0": old_hash}
+    assert record["arguments"]["codecs"] == ["octree", "mapsqueeze"] and record["version"] == mapsqueeze.__version__
+    retrained = build_model(ModelConfig.for_rate("e0"))
+    with torch.no_grad():
+        next(retrained.parameters()).add_(0.01)
+    save_model(retrained, tmp_path / "e0")  # retrained: same name, other weights
+    messages = []
+    second = run_benchmark([tmp_path / "patch.ply"], ["octree", "mapsqueeze"], tmp_path / "out",
+                           models=[str(tmp_path / "e0")], log=messages.append)
+    new_hash = load_model(str(tmp_path / "e0")).weights_sha256
+    assert new_hash != old_hash and any("other model weights" in m for m in messages)
+    assert [r for r in second if r.codec == "octree"] == [r for r in first if r.codec == "octree"]
+    assert {r.weights for r in second if r.codec == "mapsqueeze"} == {new_hash}
+    assert json.loads((tmp_path / "out" / "run.json").read_text())["model_weights_sha256"] == {"mapsqueeze:e0": new_hash}

@@ -28,10 +28,10 @@ from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M, validate_points
 
 GRID_STEP_M = 0.001
 """Input quantisation step (metres) before tmc3 sees the points: 1 mm, far below every coded cell."""
-OCTREE_CELLS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
+OCTREE_CELLS_M = (0.1, 0.2, 0.4, 0.8)
 """Octree-mode coded cell edges (metres) of the benchmark sweep."""
-TRISOUP_CELLS_M = (0.05, 0.1)
-TRISOUP_NODE_LOG2 = (2, 3, 4)
+TRISOUP_CELLS_M = (0.05, 0.1, 0.2)
+TRISOUP_NODE_LOG2 = (2, 3, 4, 5)
 """Trisoup-mode sweep: coded cell edges (metres) x triangle node sizes (2**node_log2 cells)."""
 DEFAULT_TIMEOUT_S = 600.0
 
@@ -80,6 +80,7 @@ class GpccCodec(BaselineCodec):
             f"--codingScale={GRID_STEP_M / cell!r}",
             "--disableAttributeCoding=1",
             "--mergeDuplicatedPoints=1",
+            "--partitionMethod=2",  # tmc3's default slicing (4) corrupts clouds of about 1.1M points or more
         ]
         if mode == "trisoup":
             node_log2 = setting_number(setting, "node_log2", self.name, 2, 6)

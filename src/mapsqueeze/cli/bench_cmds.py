@@ -37,7 +37,7 @@ def bench_cmd(
                                                       "them and run only the missing cloud/codec/setting rows)"),
 ):
     """Run every codec and setting on every cloud: bytes, bpp, D_e, D_perp, IoU, encode/decode seconds."""
-    from mapsqueeze.bench import run_benchmark
+    from mapsqueeze.benchmark import run_benchmark
 
     for path in inputs:
         if not path.exists():
