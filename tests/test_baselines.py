@@ -280,12 +280,15 @@ def fake_tmc3(tmp_path, monkeypatch):
     script.chmod(0o755)
     log = tmp_path / "tmc3.log"
     monkeypatch.setenv("PATH", str(bin_dir))
+    monkeypatch.delenv("MAPSQUEEZE_TMC3", raising=False)
     monkeypatch.setenv("FAKE_TMC3_LOG", str(log))
     return log
 
 
 def test_gpcc_unavailable_without_tmc3(tmp_path, monkeypatch):
     monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setenv("MAPSQUEEZE_SHARED", str(tmp_path))  # no shared copy either
+    monkeypatch.delenv("MAPSQUEEZE_TMC3", raising=False)
     codec = GpccCodec()
     assert not codec.available() and "tmc3" in codec.requirement
     with pytest.raises(BaselineError, match="not found"):
@@ -309,6 +312,7 @@ def test_gpcc_plumbing_with_fake_tmc3(fake_tmc3, map_points):
         assert float(options["codingScale"]) == pytest.approx(gpcc.GRID_STEP_M / setting["cell_m"])
         trisoup = str(setting["node_log2"]) if setting["mode"] == "trisoup" else None
         assert options.get("trisoupNodeSizeLog2") == trisoup
+        assert options["partitionMethod"] == "2"  # tmc3's default slicing corrupts clouds of >= 1.1M points
         assert "--outputUnitLength=1" in decoder and "--outputBinaryPly=1" in decoder
 
 
@@ -345,6 +349,30 @@ def test_gpcc_bad_header_raises_container_error(fake_tmc3, map_points):
     nan_origin = data[:5] + struct.pack("<d", float("nan")) + data[13:]
     with pytest.raises(ContainerError, match="absurd"):
         GpccCodec().decode(nan_origin)
+
+
+def test_gpcc_sweep_covers_octree_and_trisoup_settings(tmp_path, monkeypatch):
+    monkeypatch.setenv("MAPSQUEEZE_TMC3", str(tmp_path / "my-tmc3"))
+    codec = GpccCodec()
+    assert codec.executable == str(tmp_path / "my-tmc3")  # found through the shared resolver
+    octree = sorted(s["cell_m"] for s in codec.settings() if s["mode"] == "octree")
+    trisoup = {(s["cell_m"], s["node_log2"]) for s in codec.settings() if s["mode"] == "trisoup"}
+    assert octree == [0.1, 0.2, 0.4, 0.8]
+    assert trisoup == {(cell, node) for cell in (0.05, 0.1, 0.2) for node in (2, 3, 4, 5)}
+
+
+@pytest.mark.slow
+def test_real_tmc3_codes_a_cloud_of_more_than_a_million_points(tmc3):
+    """tmc3's default slicing hangs or corrupts the stream at this size; the wrapper's --partitionMethod=2 does not."""
+    rng = np.random.default_rng(3)
+    n = 1_400_000
+    ground = np.c_[rng.random((n, 2)) * 200.0, rng.normal(0.0, 0.05, n)] + [4.5e5, 5.4e6, 30.0]
+    codec = GpccCodec(executable=tmc3, timeout_s=180)
+    decoded = codec.decode(codec.encode(ground, {"mode": "octree", "cell_m": 0.1}))
+    assert len(decoded) > 1_100_000  # occupied 10 cm cells: the size at which the default slicing fails
+    to_decoded, to_input = nearest_distances(ground, decoded)
+    bound = HALF_DIAGONAL * (0.1 + gpcc.GRID_STEP_M) + 1e-6
+    assert to_decoded.max() <= bound and to_input.max() <= bound
 
 
 def test_real_tmc3_round_trip(tmc3, map_points):

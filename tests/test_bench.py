@@ -180,6 +180,7 @@ def test_report_states_wins_losses_and_the_target_per_cloud():
     assert "| 0.900 |" in e2 and e2.endswith("| D_e wins, IoU loses; target missed |")
     wins = [line for line in lines if line.startswith("| mapsqueeze | e0,q | 1 / 1 |")]
     assert len(wins) == 1 and wins[0].endswith("| 0.700 | +0.050 | 1 / 1 |")
+    assert "| map | 100,000 | mapsqueeze | **0.100: 0.70 / +0.05** | 0.400: 0.90 / -0.10 |" in lines
 
 
 def test_size_band_comparison_groups_clouds_by_point_count():
@@ -224,3 +225,30 @@ def test_resumed_run_reruns_rows_of_retrained_weights_and_records_them(tmp_path)
     assert [r for r in second if r.codec == "octree"] == [r for r in first if r.codec == "octree"]
     assert {r.weights for r in second if r.codec == "mapsqueeze"} == {new_hash}
     assert json.loads((tmp_path / "out" / "run.json").read_text())["model_weights_sha256"] == {"mapsqueeze:e0": new_hash}
+
+
+def test_bench_cli_rejects_unknown_codecs_before_running(tmp_path):
+    write_points(tmp_path / "a.ply", np.random.default_rng(0).random((100, 3)))
+    for codecs in ("octree,gpc", "", " , "):
+        result = CliRunner().invoke(app, ["bench", str(tmp_path / "a.ply"), "--codecs", codecs, "-o",
+                                          str(tmp_path / "o")])
+        assert result.exit_code != 0 and "--codecs" in str(result.exception), codecs
+        assert not (tmp_path / "o").exists()
+
+
+def test_bench_runs_real_gpcc_octree_and_trisoup(tmc3, tmp_path):
+    rng = np.random.default_rng(4)
+    ground = np.c_[rng.random((8000, 2)) * 30, rng.normal(0, 0.02, 8000)]
+    wall = np.c_[rng.random(4000) * 30, np.full(4000, 5.0), rng.random(4000) * 5]
+    write_points(tmp_path / "street.ply", np.vstack([ground, wall]) + [3e5, 5e6, 40.0])
+    result = CliRunner().invoke(app, ["bench", str(tmp_path / "street.ply"), "--codecs", "gpcc,octree", "-o",
+                                      str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    from mapsqueeze.benchmark.rows import read_rows
+
+    rows = read_rows(tmp_path / "out" / "results.csv")
+    gpcc = [r for r in rows if r.codec == "gpcc"]
+    assert len(gpcc) == 16 and {r.setting.split(",")[0] for r in gpcc} == {"mode=octree", "mode=trisoup"}
+    finest = min(gpcc, key=lambda r: r.d_e)
+    assert finest.d_e < 0.1 and finest.iou > 0.3 and finest.n_decoded > 1000
+    assert all(r.n_decoded > 0 and 0 <= r.iou <= 1 and r.d_perp <= r.d_e for r in gpcc)

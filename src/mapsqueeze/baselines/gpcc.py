@@ -1,4 +1,5 @@
-"""MPEG G-PCC through its reference software `tmc3` (mpeg-pcc-tmc13 with --codingScale), when it is on PATH.
+"""MPEG G-PCC through its reference software `tmc3` (mpeg-pcc-tmc13 with --codingScale), found by
+`mapsqueeze.shared.tmc3_executable` ($MAPSQUEEZE_TMC3, PATH, or the shared copy).
 
 Coordinates: tmc3 multiplies PLY positions by --inputScale and truncates toward zero, so we quantise ourselves:
 q = round((p - origin) / GRID_STEP_M) with origin the cloud's minimum corner, written as integer-valued float64
@@ -45,10 +46,14 @@ class GpccCodec(BaselineCodec):
     """Setting {"mode": "octree", "cell_m": metres} or {"mode": "trisoup", "cell_m": metres, "node_log2": 2..6}."""
 
     name: ClassVar[str] = "gpcc"
-    requirement: ClassVar[str] = "the MPEG G-PCC reference encoder `tmc3` (a mpeg-pcc-tmc13 with --codingScale) on PATH"
+    requirement: ClassVar[str] = ("the MPEG G-PCC reference encoder `tmc3` (a mpeg-pcc-tmc13 with --codingScale): "
+                                  "$MAPSQUEEZE_TMC3, on PATH, or shared/tools/tmc3/tmc3")
 
-    def __init__(self, executable: str = "tmc3", timeout_s: float = DEFAULT_TIMEOUT_S):
-        self.executable = executable
+    def __init__(self, executable: str | None = None, timeout_s: float = DEFAULT_TIMEOUT_S):
+        """executable: the tmc3 to run (default: the one `tmc3_executable` finds, else "tmc3")."""
+        from mapsqueeze.shared import tmc3_executable
+
+        self.executable = executable or tmc3_executable() or "tmc3"
         self.timeout_s = timeout_s
 
     def available(self) -> bool:

@@ -111,6 +111,27 @@ def wins_table(comparisons: list[Comparison]) -> list[str]:
     return lines
 
 
+def margins_table(comparisons: list[Comparison]) -> list[str]:
+    """Compact: one line per cloud and codec, one column per setting: bpp, D_e ratio and IoU difference against
+    the full classical front (bold where the target is met)."""
+    settings = list(dict.fromkeys(c.row.setting for c in comparisons))
+    cells: dict[tuple[str, int, str], dict[str, str]] = {}
+    for c in comparisons:
+        r = c.row
+        text = (f"{r.bpp:.3f}: {c.ratio('d_e'):.2f} / {c.difference('iou'):+.2f}" if c.within_range()
+                else f"{r.bpp:.3f}: outside")
+        cells.setdefault((r.cloud, r.n_points, r.codec), {})[r.setting] = f"**{text}**" if meets_target(c) else text
+    if not cells:
+        return []
+    lines = ["", "Margins per cloud: bpp: D_e ratio / IoU difference against the full classical front at that bpp "
+             "(bold: target met).", "",
+             "| cloud | points | codec | " + " | ".join(settings) + " |", "|---" * (3 + len(settings)) + "|"]
+    for (cloud, n_points, codec), by_setting in cells.items():
+        lines.append(f"| {cloud} | {n_points:,} | {codec} | " + " | ".join(by_setting.get(s, "") for s in settings)
+                     + " |")
+    return lines
+
+
 def size_band_comparison(comparisons: list[Comparison]) -> list[str]:
     """Markdown lines: each learned setting's mean D_e change against the front, and its wins, per band of cloud
     size (SIZE_BANDS; sparse clouds are where the learned codecs lose)."""
@@ -161,7 +182,7 @@ def reference_comparison(rows: list[Row]) -> list[str]:
 def markdown_report(rows: list[Row]) -> str:
     """The whole results.md text."""
     comparisons = compare(rows)
-    lines = [*summary_table(rows), *wins_table(comparisons), *front_table(comparisons),
+    lines = [*summary_table(rows), *wins_table(comparisons), *margins_table(comparisons), *front_table(comparisons),
              *size_band_comparison(comparisons), *reference_comparison(rows)]
     return "\n".join(lines) + "\n"
 

@@ -21,10 +21,23 @@ def parse_refine_steps(text: str) -> list[int]:
         raise MapsqueezeError(f"--refine: expected comma-separated step counts such as 0,20, got {text!r}") from None
 
 
+def parse_codecs(text: str) -> list[str]:
+    """'gpcc, draco' -> ['gpcc', 'draco'], or a MapsqueezeError naming an unknown codec and the known ones."""
+    from mapsqueeze.benchmark.variants import known_codecs
+
+    codecs = [c.strip() for c in text.split(",") if c.strip()]
+    unknown = [c for c in codecs if c not in known_codecs()]
+    if unknown or not codecs:
+        raise MapsqueezeError(f"--codecs: unknown codec {unknown[0] if unknown else text!r} "
+                              f"(known: {', '.join(known_codecs())})")
+    return codecs
+
+
 @app.command("bench")
 def bench_cmd(
     inputs: list[Path] = typer.Argument(..., help="Dataset folders (manifest.json), folders of clouds, or files"),
-    codecs: str = typer.Option("mapsqueeze,depoco-ref,draco,octree,gpcc", help="Comma-separated codecs"),
+    codecs: str = typer.Option("mapsqueeze,depoco-ref,draco,octree,octree-ac,gpcc",
+                               help="Comma-separated codecs: mapsqueeze, depoco-ref and the classical baselines"),
     out: Path = typer.Option(Path("results"), "-o", "--out", help="Output folder (CSV, markdown, plots)"),
     models: Optional[str] = typer.Option(None, help="mapsqueeze models (names or folders, comma-separated); "
                                                     "default: every shipped model"),
@@ -42,11 +55,12 @@ def bench_cmd(
     for path in inputs:
         if not path.exists():
             raise MapsqueezeError(f"{path}: no such file or folder")
+    codec_names = parse_codecs(codecs)
     refine_steps = tuple(parse_refine_steps(refine))
     with console.status("benchmark") as status:
-        rows = run_benchmark(inputs, [c.strip() for c in codecs.split(",") if c.strip()], out,
+        rows = run_benchmark(inputs, codec_names, out,
                              models=[m.strip() for m in models.split(",")] if models else None,
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
                              progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps, every=every)
     console.print((out / "results.md").read_text(), markup=False, highlight=False)
-    console.print(f"{len(rows)} results -> {out}/results.csv, results.md, rd*.png")
+    console.print(f"{len(rows)} results -> {out}/results.csv, results.md, run.json, rd*.png")
