@@ -236,6 +236,7 @@ def test_bench_cli_rejects_unknown_codecs_before_running(tmp_path):
         assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_bench_runs_real_gpcc_octree_and_trisoup(tmc3, tmp_path):
     rng = np.random.default_rng(4)
     ground = np.c_[rng.random((8000, 2)) * 30, rng.normal(0, 0.02, 8000)]

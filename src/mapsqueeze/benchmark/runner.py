@@ -24,20 +24,12 @@ def write_reports(rows: list[Row], out_dir: Path, final: bool = True) -> None:
     write_plots(rows, out_dir, per_cloud=final)
 
 
-def package_version() -> str:
-    """The installed mapsqueeze distribution's version ("unknown" when run from sources that are not installed)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("mapsqueeze")
-    except PackageNotFoundError:
-        return "unknown"
-
-
 def run_record(arguments: dict, variants: list[Variant]) -> dict:
     """What run.json holds: package version, arguments, the learned models' weight hashes, machine, start time."""
+    from mapsqueeze.version import __version__
+
     weights = {f"{v.codec}:{v.setting.split(',')[0]}": v.weights for v in variants if v.weights}
-    return {"version": package_version(), "arguments": arguments, "model_weights_sha256": weights,
+    return {"version": __version__, "arguments": arguments, "model_weights_sha256": weights,
             "machine": {"python": platform.python_version(), "platform": platform.platform(),
                         "processor": platform.processor() or platform.machine()},
             "started": datetime.now(timezone.utc).isoformat(timespec="seconds")}
