@@ -6,7 +6,14 @@ import torch
 
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
-from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes, spread_subset
+from mapsqueeze.geometry.morton import (
+    MAX_BITS,
+    bit_reversal_order,
+    coarse_to_fine_subset,
+    morton_cells,
+    morton_codes,
+    spread_subset,
+)
 
 
 def brute_force_neighbors(source, queries, radius, cap):
@@ -131,6 +138,30 @@ def test_spread_subset_leaves_no_holes_and_follows_density():
     left = (dense[spread_subset(dense, 600), 0] < 5).sum()
     assert 380 <= left <= 420
     assert len(spread_subset(square[:10], 20)) == 10 and len(spread_subset(square[:1], 1)) == 1
+
+
+def test_bit_reversal_order_halves_the_step_with_each_doubling():
+    np.testing.assert_array_equal(bit_reversal_order(8), [0, 4, 2, 6, 1, 5, 3, 7])
+    for count in (1, 2, 5, 1000):
+        order = bit_reversal_order(count)
+        assert sorted(order) == list(range(count))
+    order = bit_reversal_order(1024)
+    for k in (2, 16, 256):
+        np.testing.assert_array_equal(np.sort(order[:k]), np.arange(k) * (1024 // k))
+
+
+def test_coarse_to_fine_subset_is_the_spread_subset_and_every_prefix_is_spread():
+    rng = np.random.default_rng(0)
+    square = np.c_[rng.random((40000, 2)) * 10, np.zeros(40000)]
+    order = coarse_to_fine_subset(square, 4096)
+    np.testing.assert_array_equal(np.sort(order), spread_subset(square, 4096))
+    cell_of = (square[:, 0] // 1 * 10 + square[:, 1] // 1).astype(int)
+    for prefix in (400, 1000):  # a prefix covers every 1 m cell, spread more evenly than a random subset
+        per_cell = np.bincount(cell_of[order[:prefix]], minlength=100)
+        random_cells = np.bincount(cell_of[rng.choice(len(square), prefix, replace=False)], minlength=100)
+        assert per_cell.min() >= 1 and per_cell.var() < 0.5 * random_cells.var()
+    assert sorted(coarse_to_fine_subset(square[:10], 20)) == list(range(10))
+    assert len(coarse_to_fine_subset(square, 0)) == 0
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -2,7 +2,7 @@
 
 from mapsqueeze.version import __version__  # noqa: F401
 
-_API = ("compress", "decompress", "compress_file", "decompress_file", "info")
+_API = ("compress", "decompress", "compress_file", "decompress_file", "info", "tiles")
 
 
 def __getattr__(name: str):

@@ -17,7 +17,13 @@ import numpy as np
 
 from mapsqueeze.codec.compress import ProgressCallback, compress_chunks, compress_map
 from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, TileCoding, open_container
-from mapsqueeze.codec.decompress import iter_decoded_tiles, tile_world_bounds
+from mapsqueeze.codec.decompress import (
+    decode_embedding,
+    iter_decoded_tiles,
+    tile_frame,
+    tile_origin,
+    tile_world_bounds,
+)
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import (
@@ -119,6 +125,39 @@ def info(source: bytes | str | os.PathLike) -> ContainerInfo:
             n_raw_tiles=sum(entry.coding is TileCoding.raw for entry in reader.entries),
             bounds=np.stack([boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)]),
         )
+
+
+@dataclass(frozen=True)
+class TileInfo:
+    """One tile of a .msq file (`tiles`): where it lies, how it is coded and what it stores."""
+
+    index: tuple[int, int, int]  # grid cell: lower corner at origin + index * tile_size
+    coding: str  # how its points are stored: "network" (an embedding decoded by the model) or "raw"
+    model_id: str | None  # the model that decodes it (None: no network needed)
+    n_points: int  # points of the input map in the tile (the default decoded count)
+    payload_bytes: int
+    cell: np.ndarray  # (2, 3) float64 world box of the grid cell (metres)
+    bounds: np.ndarray  # (2, 3) float64 world box of the tile's input points (metres)
+    embedding: np.ndarray  # (k, 3) float64 world positions of the embedding points (metres); (0, 3) if none
+
+
+def tiles(source: bytes | str | os.PathLike) -> list[TileInfo]:
+    """Every tile of a .msq buffer or file in file order, with its embedding points (no network runs)."""
+    reader, stream = open_container(source)
+    with stream:
+        header = reader.header
+        result = []
+        for position, entry in enumerate(reader.entries):
+            network = entry.coding is TileCoding.network
+            embedding = (tile_frame(header, entry) + decode_embedding(reader, position)[0] if network
+                         else np.zeros((0, 3)))
+            lower = tile_origin(header, entry)
+            result.append(TileInfo(
+                index=entry.index, coding=entry.coding.name, model_id=header.model_id if network else None,
+                n_points=entry.n_points, payload_bytes=entry.length,
+                cell=np.stack([lower, lower + np.asarray(header.tile_size)]),
+                bounds=tile_world_bounds(header, entry), embedding=np.asarray(embedding, dtype=np.float64)))
+        return result
 
 
 def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=DEFAULT_MODEL,

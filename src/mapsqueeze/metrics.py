@@ -93,6 +93,12 @@ def _checked_normals(gt_normals: np.ndarray | None, gt: np.ndarray, gt_tree: cKD
     return normals
 
 
+def nearest_distances(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(N,) distance (metres) from each of `points` to its nearest neighbour in `reference` (the terms of D_e)."""
+    points, reference = validate_points(points, "points"), validate_points(reference, "reference")
+    return cKDTree(reference).query(points, k=1, workers=-1)[0]
+
+
 def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
     """Chamfer distance D_CD (eq. 6-7) in square metres: symmetric mean squared nearest-neighbour distance."""
     a, b = validate_points(a, "a"), validate_points(b, "b")

@@ -9,10 +9,15 @@ from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
+
 from mapsqueeze.benchmark.clouds import collect_clouds
 from mapsqueeze.benchmark.rows import Row, read_rows, write_rows
 from mapsqueeze.benchmark.variants import Variant, build_variants
 from mapsqueeze.errors import MapsqueezeError
+
+
+DecodedCallback = Callable[[str, str, str, bytes, np.ndarray, np.ndarray, object], None]
 
 
 def write_reports(rows: list[Row], out_dir: Path, final: bool = True) -> None:
@@ -55,14 +60,16 @@ def reusable_rows(rows: list[Row], variants: list[Variant], log: Callable[[str],
 def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: list[str] | None = None,
                   precision: str = "q", split: str = "test", log: Callable[[str], None] = print,
                   progress: Callable[[str], None] | None = None, fresh: bool = False,
-                  refine: tuple[int, ...] = (0,), every: int = 1) -> list[Row]:
+                  refine: tuple[int, ...] = (0,), every: int = 1, on_decoded: DecodedCallback | None = None
+                  ) -> list[Row]:
     """Run every variant on every cloud; write results.csv, run.json, results.md, rd.png (+ rd_<cloud>.png).
 
     Results already in out_dir/results.csv are kept and their (cloud, codec, setting) not run again when made
     with the same model weights, so a long benchmark can be resumed or extended by more codecs later; fresh=True
     starts over. refine: the encode-time refinement steps the learned codecs run at (each a setting of its own).
     every=N runs on every N-th cloud only (the first, the (N+1)-th, ...; names unchanged, so a subset can be added
-    to a full run's folder).
+    to a full run's folder). on_decoded(cloud name, codec, setting, compressed bytes, original points, decoded points,
+    metrics) is called after each result (the CLI writes viewer pages with it).
     """
     from mapsqueeze.codec.compress import check_refine_steps
     from mapsqueeze.geometry.normals import normals_pca
@@ -97,6 +104,8 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
             decoded = v.decode(data, cloud.origin)
             t2 = time.perf_counter()
             m = evaluate(cloud.points, decoded, n_bytes=len(data), gt_normals=normals)
+            if on_decoded:
+                on_decoded(cloud.name, v.codec, v.setting, data, cloud.points, decoded, m)
             rows.append(Row(cloud.name, v.codec, v.setting, v.weights, len(cloud.points), len(data), m.bpp, m.d_e,
                             m.d_perp, m.iou, m.n_rec, t1 - t0, t2 - t1))
         write_rows(rows, out_dir / "results.csv")

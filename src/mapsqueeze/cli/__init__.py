@@ -12,7 +12,7 @@ import typer
 
 from mapsqueeze.cli.app import app
 from mapsqueeze.cli import (  # noqa: F401  (registers commands)
-    bench_cmds, codec_cmds, data_cmds, demo_cmds, eval_cmds, io_cmds, model_cmds, sim_cmds,
+    bench_cmds, codec_cmds, data_cmds, demo_cmds, eval_cmds, io_cmds, model_cmds, sim_cmds, view_cmds,
 )
 from mapsqueeze.errors import MapsqueezeError
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Optional
 
@@ -51,6 +52,8 @@ def bench_cmd(
 ):
     """Run every codec and setting on every cloud: bytes, bpp, D_e, D_perp, IoU, encode/decode seconds."""
     from mapsqueeze.benchmark import run_benchmark
+    from mapsqueeze.benchmark.report import summarise
+    from mapsqueeze.view.report import cloud_view_writer, write_report
 
     for path in inputs:
         if not path.exists():
@@ -61,6 +64,8 @@ def bench_cmd(
         rows = run_benchmark(inputs, codec_names, out,
                              models=[m.strip() for m in models.split(",")] if models else None,
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
-                             progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps, every=every)
+                             progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps, every=every,
+                             on_decoded=cloud_view_writer(out))
+    write_report(out, [dataclasses.asdict(r) for r in rows], summarise(rows))
     console.print((out / "results.md").read_text(), markup=False, highlight=False)
-    console.print(f"{len(rows)} results -> {out}/results.csv, results.md, run.json, rd*.png")
+    console.print(f"{len(rows)} results -> {out}/results.csv, results.md, run.json, rd*.png, report.html")

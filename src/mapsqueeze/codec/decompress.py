@@ -93,6 +93,39 @@ def check_model(model, header: Header, name: str) -> None:
             "pass the model used for compression (--model NAME|PATH)")
 
 
+def _embedding_from_payload(header: Header, entry: TileEntry, payload: bytes, label: str
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    if header.precision is Precision.q:
+        quant_model = header.quant_model
+        points, features = dequantise(quant_model.decode(payload, entry.n_points, label), quant_model.grid,
+                                      quant_model.quantiser)
+    else:
+        points, features = decode_float(payload, header.precision, np.asarray(header.tile_size), header.n_features,
+                                        entry.n_points, label)
+    if len(points) == 0:
+        raise ContainerError(f"{label}: network payload holds no embedding points")
+    return points, features
+
+
+def _undecodable(label: str, exc: Exception) -> ContainerError:
+    return ContainerError(f"{label}: undecodable payload ({exc})")
+
+
+def decode_embedding(reader: ContainerReader, position: int) -> tuple[np.ndarray, np.ndarray]:
+    """The embedding of network-coded tile `position`: (k, 3) float32 point positions relative to `tile_frame`
+    (metres) and their (k, n_features) float32 features."""
+    entry = reader.entries[position]
+    label = f"{reader.name}: {entry.label(position)}"
+    if entry.coding is not TileCoding.network:
+        raise ContainerError(f"{label} is coded {entry.coding.name}, it holds no embedding")
+    try:
+        return _embedding_from_payload(reader.header, entry, reader.payload(position), label)
+    except MapsqueezeError:
+        raise
+    except (ValueError, IndexError, OverflowError) as exc:
+        raise _undecodable(label, exc) from None
+
+
 def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np.ndarray:
     """Tile `position` decoded to `count` float32 points relative to `tile_frame`, all inside the tile's bounds.
 
@@ -108,21 +141,12 @@ def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np
             local = resample_to_count(
                 decode_raw_tile(payload, tile_size, entry.n_points, label, header.raw_step_m), count)
         else:
-            if header.precision is Precision.q:
-                quant_model = header.quant_model
-                points, features = dequantise(quant_model.decode(payload, entry.n_points, label), quant_model.grid,
-                                              quant_model.quantiser)
-            else:
-                points, features = decode_float(payload, header.precision, tile_size, header.n_features,
-                                                entry.n_points, label)
-            if len(points) == 0:
-                raise ContainerError(f"{label}: network payload holds no embedding points")
-            local = resample_to_count(keep_inside(model.decode(points, features), entry.frame_extent_m(tile_size)),
-                                      count)
+            decoded = model.decode(*_embedding_from_payload(header, entry, payload, label))
+            local = resample_to_count(keep_inside(decoded, entry.frame_extent_m(tile_size)), count)
     except MapsqueezeError:
         raise
     except (ValueError, IndexError, OverflowError) as exc:
-        raise ContainerError(f"{label}: undecodable payload ({exc})") from None
+        raise _undecodable(label, exc) from None
     return local
 
 

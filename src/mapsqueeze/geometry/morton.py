@@ -57,6 +57,20 @@ SPREAD_BITS = 16
 """Bits per axis of the grid behind `spread_subset`: 0.6 mm cells over a 40 m tile."""
 
 
+def _morton_order(points: np.ndarray) -> np.ndarray:
+    """Indices of the (N, 3) finite points sorted along the Morton order of a SPREAD_BITS grid over their box."""
+    low, high = bounding_box(points)
+    extent = float((high - low).max())
+    scale = ((1 << SPREAD_BITS) - 1) / extent if extent > 0 else 0.0
+    cells = np.floor((points - low) * scale).astype(np.int64)
+    return np.argsort(morton_codes(cells, SPREAD_BITS), kind="stable")
+
+
+def _spread_picks(points: np.ndarray, count: int) -> np.ndarray:
+    """Every (N / count)-th index along the Morton order, in that order (count < N)."""
+    return _morton_order(points)[(np.arange(count) * len(points)) // count]
+
+
 def spread_subset(points: np.ndarray, count: int) -> np.ndarray:
     """Ascending indices of `count` of the (N, 3) finite `points` spread evenly over them: every (N / count)-th
     point along the Morton order of a fine grid over their bounding box (ties in index order). Deterministic; unlike
@@ -65,9 +79,27 @@ def spread_subset(points: np.ndarray, count: int) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if count >= len(points):
         return np.arange(len(points))
-    low, high = bounding_box(points)
-    extent = float((high - low).max())
-    scale = ((1 << SPREAD_BITS) - 1) / extent if extent > 0 else 0.0
-    cells = np.floor((points - low) * scale).astype(np.int64)
-    order = np.argsort(morton_codes(cells, SPREAD_BITS), kind="stable")
-    return np.sort(order[(np.arange(count) * len(points)) // count])
+    return np.sort(_spread_picks(points, max(count, 0)))
+
+
+def bit_reversal_order(count: int) -> np.ndarray:
+    """The permutation of range(count) sorted by bit-reversed value: 0, count/2, count/4, 3 count/4, ... Every
+    prefix of length 2**j holds every (count / 2**j)-th position (for powers of two exactly, else nearly)."""
+    bits = max(int(count - 1).bit_length(), 1)
+    ranks = np.arange(count, dtype=np.uint64)
+    reversed_ranks = np.zeros(count, dtype=np.uint64)
+    for bit in range(bits):
+        reversed_ranks |= ((ranks >> np.uint64(bit)) & np.uint64(1)) << np.uint64(bits - 1 - bit)
+    return np.argsort(reversed_ranks, kind="stable")
+
+
+def coarse_to_fine_subset(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of the `spread_subset` of `count` points, ordered so that every prefix is itself spread evenly over
+    the cloud (the first k are about every (count / k)-th along the Morton order): drawing a prefix gives a coarser
+    level of detail of the same subset. count >= N orders every point."""
+    points = np.asarray(points, dtype=np.float64)
+    count = min(max(count, 0), len(points))
+    if count == 0:
+        return np.zeros(0, dtype=np.int64)
+    picks = _spread_picks(points, count)
+    return picks[bit_reversal_order(count)]

@@ -1,0 +1,40 @@
+"""`mapsqueeze view`: a self-contained web page of a .msq file's decoded map, optionally over its original."""
+
+import webbrowser
+from pathlib import Path
+
+import typer
+
+from mapsqueeze.cli.app import app, make_console
+from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.view import DEFAULT_MAX_POINTS
+
+
+@app.command("view")
+def view_command(
+    msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq file to show"),
+    original: Path | None = typer.Option(None, "--original", metavar="FILE",
+                                         help="the map it was compressed from (.ply .pcd .las .laz .bin .npy): shown "
+                                              "beside or over the decoded one, with errors and D_e, D_perp, IoU"),
+    output: Path | None = typer.Option(None, "-o", "--output", metavar="view.html",
+                                       help="HTML page to write (atomically; default: MAP.html beside MAP.msq)"),
+    max_points: int = typer.Option(DEFAULT_MAX_POINTS, "--max-points", min=1, metavar="N",
+                                   help="points drawn per cloud: an evenly spread subset (about 13 bytes of page "
+                                        "each)"),
+    model: str | None = typer.Option(None, "--model", help="model to decode with (default: the one in the file)"),
+    open_page: bool = typer.Option(False, "--open", help="open the page in the default web browser"),
+) -> None:
+    """Write one HTML page (works offline, nothing to serve) showing the decoded map, the original, errors, tiles."""
+    from mapsqueeze.io import check_output_path
+    from mapsqueeze.view import ViewInput, load_cloud, write_view
+
+    output = output or msq.with_suffix(".html")
+    check_output_path(output)
+    if not msq.is_file():
+        raise MapsqueezeError(f"{msq}: no such file")
+    view = ViewInput(msq.name, msq, original=None if original is None else load_cloud(original), model=model)
+    scene = write_view(view, output, max_points)
+    drawn = ", ".join(f"{c['name']} {c['drawn']:,} of {c['total']:,}" for c in scene["clouds"])
+    make_console().print(f"wrote {output} ({output.stat().st_size:,} bytes; points drawn: {drawn})")
+    if open_page:
+        webbrowser.open(output.resolve().as_uri())
