@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import base64
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,7 +46,6 @@ class ViewInput:
     decoded: CloudInput | None = None  # default: api.decompress(msq) at the stored counts
     metrics: Metrics | None = None  # default: evaluate(original, decoded) when the original is given
     model: object = None  # decoding model (default: the one named in the file)
-    extra: dict = field(default_factory=dict)  # more summary rows (name -> text)
 
 
 def _b64(array: np.ndarray, dtype: str) -> str:
@@ -135,6 +134,5 @@ def build_scene(view: ViewInput, max_points: int = DEFAULT_MAX_POINTS) -> dict:
                                                else summary.n_points),
             "dE": _metric_or_none(metrics, "d_e"), "dPerp": _metric_or_none(metrics, "d_perp"),
             "iou": _metric_or_none(metrics, "iou"), "tileSize": list(summary.tile_size),
-            "extra": dict(view.extra),
         },
     }

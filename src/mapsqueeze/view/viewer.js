@@ -403,7 +403,6 @@
       ["tiles", `${scene.tiles.length} (${modeCounts})`],
       ["tile size", s.tileSize.map((v) => fmt(v, 0)).join(" x ") + " m"],
       ["embedding points", count(scene.embedding.count)],
-      ...Object.entries(s.extra),
     ];
     $("summary").innerHTML = "";
     for (const [name, value] of rows) {
