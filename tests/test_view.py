@@ -164,6 +164,18 @@ def test_cli_writes_the_page_and_rejects_bad_input(tmp_path, compressed, map_poi
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.html", "map.msq", "map.ply"]  # nothing half-written
 
 
+def test_cli_open_hands_the_page_to_the_browser(tmp_path, compressed, model_dir, run_cli, monkeypatch):
+    import webbrowser
+
+    opened = []
+    monkeypatch.setattr(webbrowser, "open", opened.append)
+    (tmp_path / "map.msq").write_bytes(compressed)
+    code, out, err = run_cli("view", str(tmp_path / "map.msq"), "-o", str(tmp_path / "v.html"), "--open",
+                             "--max-points", "100", "--model", str(model_dir))
+    assert code == 0, err
+    assert opened == [(tmp_path / "v.html").resolve().as_uri()]
+
+
 @pytest.mark.slow
 def test_bench_writes_a_report_with_a_view_per_cloud(tmp_path, map_points, model_dir, run_cli):
     (tmp_path / "clouds").mkdir()
