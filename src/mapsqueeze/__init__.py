@@ -2,7 +2,8 @@
 
 from mapsqueeze.version import __version__  # noqa: F401
 
-_API = ("compress", "decompress", "compress_file", "decompress_file", "info", "tiles")
+_API = ("compress", "decompress", "decompress_cloud", "compress_file", "decompress_file", "info", "tiles",
+        "AttributeOptions")
 
 
 def __getattr__(name: str):

@@ -2,6 +2,8 @@
 
     data = mapsqueeze.compress(points)                   # (N, 3) float64 metres -> bytes (model "e1", precision q)
     cloud = mapsqueeze.decompress(data)                  # -> (about N, 3) float64 metres
+    data = mapsqueeze.compress(points, attributes={"intensity": values})   # + per-point attributes
+    cloud = mapsqueeze.decompress_cloud(data)            # -> PointCloud: points, attributes, metadata
     mapsqueeze.compress_file("map.ply", "map.msq")
     mapsqueeze.decompress_file("map.msq", "out.las", bbox=(x0, y0, z0, x1, y1, z1))
 """
@@ -15,10 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapsqueeze.codec.compress import ProgressCallback, compress_chunks, compress_map
+from mapsqueeze.codec.attributes import CONTINUOUS, AttributeSchema
+from mapsqueeze.codec.compress import AttributeOptions, ProgressCallback, compress_chunks, compress_map
 from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, TileCoding, open_container
 from mapsqueeze.codec.decompress import (
     decode_embedding,
+    iter_decoded_clouds,
     iter_decoded_tiles,
     tile_frame,
     tile_origin,
@@ -27,16 +31,18 @@ from mapsqueeze.codec.decompress import (
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import (
+    DEFAULT_CHUNK_POINTS,
+    PointCloud,
     atomic_write_bytes,
     check_output_path,
     drop_zero_points,
     format_name,
-    iter_points,
+    iter_point_clouds,
+    validate_attributes,
     validate_points,
     work_dir,
     write_point_chunks,
 )
-from mapsqueeze.io.formats import DEFAULT_CHUNK_POINTS
 
 DEFAULT_MODEL = "e1"
 DEFAULT_PRECISION = "q"
@@ -52,18 +58,29 @@ def _model(model):
 
 
 def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision = DEFAULT_PRECISION, *,
-             refine_steps: int = 0, progress: ProgressCallback | None = None, keep_zero_points: bool = False) -> bytes:
+             refine_steps: int = 0, progress: ProgressCallback | None = None, keep_zero_points: bool = False,
+             attributes: dict[str, np.ndarray] | None = None, metadata: dict | None = None,
+             attribute_options: AttributeOptions = AttributeOptions()) -> bytes:
     """(N, 3) float64 map points (metres, e.g. UTM) -> .msq bytes.
 
     model: shipped name (e0..e3), model directory or loaded CompressionModel. precision: f32, f16 or q.
     refine_steps: encode-time refinement of each tile's embedding (0: the paper's encoder; 20: ~10 % lower D_e at
     the same size, encoding 10-45x slower on CPU; decoding unchanged). progress(done, total) is called after each tile.
-    Points at exactly (0, 0, 0), which sensors write for "no return", are left out unless keep_zero_points.
+    Points at exactly (0, 0, 0), which sensors write for "no return", are left out (with their attributes) unless
+    keep_zero_points. attributes: name -> (N,) values, coded per tile as chosen by attribute_options (which, voxel
+    edge, step); metadata: JSON-serialisable file metadata (e.g. `PointCloud.metadata` of a LAS file) stored in the
+    file.
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     if not keep_zero_points:
-        points, _ = drop_zero_points(validate_points(points, name="map"), name="map")
-    return compress_map(points, _model(model), precision, progress=progress, refine_steps=refine_steps)
+        points = validate_points(points, name="map")
+        attributes = validate_attributes(attributes, len(points), name="map")
+        kept, n_zero = drop_zero_points(points, name="map")
+        if n_zero:
+            nonzero = points.any(axis=1)
+            points, attributes = kept, {name: values[nonzero] for name, values in attributes.items()}
+    return compress_map(points, _model(model), precision, progress=progress, refine_steps=refine_steps,
+                        attributes=attributes, metadata=metadata, attribute_options=attribute_options)
 
 
 def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
@@ -80,6 +97,18 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
     """
     tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress, max_tile_points))
     return np.concatenate(tiles) if tiles else np.zeros((0, 3), dtype=np.float64)
+
+
+def decompress_cloud(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
+                     density: float | None = None, n_points: int | None = None,
+                     progress: ProgressCallback | None = None) -> PointCloud:
+    """As `decompress`, with every attribute coded in the file (dtypes restored) and the file's metadata."""
+    tiles = list(iter_decoded_clouds(data, model, bbox, density, n_points, progress))
+    if not tiles:
+        return PointCloud(np.zeros((0, 3), dtype=np.float64))
+    return PointCloud(np.concatenate([tile.points for tile in tiles]),
+                      {name: np.concatenate([tile.attributes[name] for tile in tiles]) for name in tiles[0].attributes},
+                      tiles[0].metadata)
 
 
 @dataclass(frozen=True)
@@ -99,6 +128,26 @@ class ContainerInfo:
     n_raw_tiles: int
     bounds: np.ndarray  # (2, 3) world box of all tiles' points (metres)
     zero_points_dropped: int = 0  # input points at exactly (0, 0, 0) left out (compress_file only)
+    attribute_schema: AttributeSchema | None = None  # coded attributes and file metadata (None: geometry only)
+    attribute_bytes: int = 0  # bytes of the attribute section (schema, metadata, streams)
+
+    @property
+    def attributes(self) -> tuple[str, ...]:
+        return tuple(spec.name for spec in self.attribute_schema.specs) if self.attribute_schema else ()
+
+    @property
+    def metadata(self) -> dict:
+        return self.attribute_schema.metadata if self.attribute_schema else {}
+
+    def attribute_summary(self) -> str:
+        """One line: each attribute with its coding, the voxel edge and the bits per point they take."""
+        schema = self.attribute_schema
+        if not schema or not schema.specs:
+            return "none"
+        parts = [f"{spec.name} ({spec.dtype.name}, " + (f"median, step {spec.step:.6g})" if spec.kind == CONTINUOUS
+                                                        else "majority)") for spec in schema.specs]
+        return (", ".join(parts) + f"; voxel {schema.voxel_m:g} m; {self.attribute_bytes:,} bytes, "
+                f"{8.0 * self.attribute_bytes / self.n_points:.4f} bits per point")
 
     @property
     def bits_per_point(self) -> float:
@@ -124,6 +173,8 @@ def info(source: bytes | str | os.PathLike) -> ContainerInfo:
             n_tiles=header.n_tiles,
             n_raw_tiles=sum(entry.coding is TileCoding.raw for entry in reader.entries),
             bounds=np.stack([boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)]),
+            attribute_schema=reader.attribute_schema,
+            attribute_bytes=reader.file_size - (reader.entries[-1].offset + reader.entries[-1].length),
         )
 
 
@@ -163,13 +214,15 @@ def tiles(source: bytes | str | os.PathLike) -> list[TileInfo]:
 def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=DEFAULT_MODEL,
                   precision: str | Precision = DEFAULT_PRECISION, *, refine_steps: int = 0,
                   progress: ProgressCallback | None = None, keep_zero_points: bool = False,
-                  format: str | None = None) -> ContainerInfo:
+                  format: str | None = None,
+                  attribute_options: AttributeOptions = AttributeOptions()) -> ContainerInfo:
     """Read a point-cloud file in chunks, compress it, write the .msq atomically; returns the written file's summary
     (with `zero_points_dropped`, the points at exactly (0, 0, 0) left out unless keep_zero_points).
 
     format: the input's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension). The output
     path is checked before any work. Memory is bounded by a chunk of the input and one tile (see `compress_chunks`),
-    not by the map's size; the bytes are those `compress(read_points(input_path), ...)` gives.
+    not by the map's size; the bytes are those `compress` gives for the file's points, attributes and metadata
+    (`read_point_cloud`), coded as attribute_options says.
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     format_name(input_path, format)
@@ -179,9 +232,13 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
 
     def chunks():
         dropped[0] = kept = 0
-        for chunk in iter_points(input_path, format):
+        for chunk in iter_point_clouds(input_path, format):
             if not keep_zero_points:
-                chunk, n_zero = drop_zero_points(chunk, allow_empty=True)
+                points, n_zero = drop_zero_points(chunk.points, allow_empty=True)
+                if n_zero:
+                    nonzero = chunk.points.any(axis=1)
+                    chunk = PointCloud(points, {name: values[nonzero] for name, values in chunk.attributes.items()},
+                                       chunk.metadata)
                 dropped[0] += n_zero
             kept += len(chunk)
             if len(chunk):
@@ -190,7 +247,8 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
             raise InvalidPointCloudError(f"{input_path}: all {dropped[0]:,} points lie at (0, 0, 0) (sensor "
                                          "'no return' values); keep them with --keep-zero-points")
 
-    data = compress_chunks(chunks, model, precision, progress=progress, refine_steps=refine_steps)
+    data = compress_chunks(chunks, model, precision, progress=progress, refine_steps=refine_steps,
+                           attribute_options=attribute_options)
     atomic_write_bytes(output_path, data)
     return dataclasses.replace(info(data), zero_points_dropped=dropped[0])
 
@@ -199,28 +257,43 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                     bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
                     progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None,
                     max_tile_points: int = DEFAULT_MAX_TILE_POINTS, format: str | None = None) -> int:
-    """Decode a .msq file (seeking to the tiles needed) and write the points atomically; returns the count.
+    """Decode a .msq file (seeking to the tiles needed) and write the points, their attributes and the file's
+    metadata atomically; returns the count.
 
     format: the output's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension).
 
-    Tiles are decoded one at a time into a float64 spill file (in spill_dir, default the system's temporary
-    directory; 24 bytes a point), which is then written out chunk by chunk: memory stays bounded by a tile and a
-    chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`).
+    Tiles are decoded one at a time into spill files (in spill_dir, default the system's temporary directory;
+    24 bytes a point plus the attributes), which are then written out chunk by chunk: memory stays bounded by a
+    tile and a chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`).
     """
     format_name(output_path, format)  # an unknown output format or an unwritable path fails before any decoding
     check_output_path(output_path)
+    schema = info(input_path).attribute_schema
+    specs = schema.specs if schema else ()
     with work_dir("mapsqueeze-decoded-", spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
-        with open(spill_path, "wb") as stream:
-            for tile_points in iter_decoded_tiles(input_path, model, bbox, density, n_points, progress,
-                                                  max_tile_points):
-                stream.write(np.ascontiguousarray(tile_points, dtype="<f8").tobytes())
+        streams = [open(os.path.join(spill, f"attribute{column}"), "wb") for column in range(len(specs))]
+        try:
+            with open(spill_path, "wb") as stream:
+                for tile in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress,
+                                                max_tile_points):
+                    stream.write(np.ascontiguousarray(tile.points, dtype="<f8").tobytes())
+                    for spec, column in zip(specs, streams):
+                        column.write(np.ascontiguousarray(tile.attributes[spec.name], dtype=spec.dtype).tobytes())
+        finally:
+            for column in streams:
+                column.close()
         if os.path.getsize(spill_path) == 0:
             raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
         points = np.memmap(spill_path, dtype="<f8", mode="r").reshape(-1, 3)
+        columns = {spec.name: np.memmap(os.path.join(spill, f"attribute{column}"), dtype=spec.dtype, mode="r")
+                   for column, spec in enumerate(specs)}
+        metadata = schema.metadata if schema else {}
         try:
-            return write_point_chunks(output_path, lambda: (points[start:start + DEFAULT_CHUNK_POINTS]
-                                                            for start in range(0, len(points), DEFAULT_CHUNK_POINTS)),
-                                      format)
+            return write_point_chunks(output_path, lambda: (
+                PointCloud(points[start:start + DEFAULT_CHUNK_POINTS],
+                           {name: values[start:start + DEFAULT_CHUNK_POINTS] for name, values in columns.items()},
+                           metadata)
+                for start in range(0, len(points), DEFAULT_CHUNK_POINTS)), format)
         finally:
-            del points  # release the mapping before the directory is removed
+            del points, columns  # release the mappings before the directory is removed

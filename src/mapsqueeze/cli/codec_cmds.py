@@ -10,7 +10,9 @@ from rich.table import Table
 
 from mapsqueeze import api
 from mapsqueeze.cli.app import FORMAT_HELP, app, make_console, parse_numbers
-from mapsqueeze.codec.compress import MAX_REFINE_STEPS
+from mapsqueeze.cli.io_cmds import warn_dropped
+from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
+from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
 from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE
 
 
@@ -52,18 +54,30 @@ def compress_command(
     keep_zero_points: bool = typer.Option(False, "--keep-zero-points",
                                           help="keep points at exactly (0, 0, 0), which sensors write for 'no "
                                                "return' (default: left out, with a count)"),
+    attributes: str = typer.Option("all", "--attributes", metavar="all|none|NAMES",
+                                   help="per-point attributes to code (comma-separated names, e.g. intensity,label)"),
+    attribute_voxel: float = typer.Option(DEFAULT_VOXEL_M, "--attribute-voxel", metavar="METRES",
+                                          help="attribute resolution: edge of the voxels attributes are coded on"),
+    attribute_step: float = typer.Option(DEFAULT_RELATIVE_STEP, "--attribute-step", metavar="FRACTION",
+                                         help="quantisation step of continuous attributes (intensity, colour, time) "
+                                              "as a fraction of each one's range"),
 ) -> None:
-    """Compress a map: 40 x 40 x 15 m tiles, each encoded by the network (sparse tiles near-exactly)."""
+    """Compress a map: 40 x 40 x 15 m tiles, each encoded by the network (sparse tiles near-exactly); attributes
+    (intensity, colour, labels, ...) on a voxel grid per tile; the LAS header's metadata (CRS) is kept."""
+    options = AttributeOptions(attributes, attribute_voxel, attribute_step)
     with _tile_progress("compressing") as progress:
         summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, progress=progress,
-                                    keep_zero_points=keep_zero_points, format=in_format)
+                                    keep_zero_points=keep_zero_points, format=in_format,
+                                    attribute_options=options)
     console = make_console()
     if summary.zero_points_dropped:
         console.print(f"left out {summary.zero_points_dropped:,} points at exactly (0, 0, 0) (sensor 'no return' "
                       "values; --keep-zero-points keeps them)")
     console.print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles "
                   f"({summary.n_raw_tiles} stored raw: too sparse for the network), {summary.file_bytes:,} bytes, "
-                  f"{summary.bits_per_point:.4f} bits per point")
+                  f"{summary.bits_per_point:.4f} bits per point"
+                  + (f"; attributes {', '.join(summary.attributes)}: {summary.attribute_bytes:,} bytes"
+                     if summary.attributes else ""))
 
 
 @app.command("decompress")
@@ -87,6 +101,7 @@ def decompress_command(
 ) -> None:
     """Decompress a .msq file to a point cloud."""
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
+    warn_dropped(api.info(msq).attributes, output, out_format)
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress, max_tile_points=max_tile_points, format=out_format)
@@ -116,7 +131,16 @@ def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq f
         ("bits per point", f"{summary.bits_per_point:.4f}"),
         ("origin", ", ".join(f"{v:.3f}" for v in summary.origin)),
         ("bounds", " .. ".join("(" + ", ".join(f"{v:.2f}" for v in corner) + ")" for corner in summary.bounds)),
+        ("attributes", summary.attribute_summary()),
     ]
+    if "crs" in summary.metadata:
+        rows.append(("crs", summary.metadata["crs"]))
+    las = summary.metadata.get("las")
+    if las:
+        rows.append(("las header", f"version {las['version']}, point format {las['point_format']}, scales "
+                     + ", ".join(f"{v:g}" for v in las["scales"]) + ", offsets "
+                     + ", ".join(f"{v:g}" for v in las["offsets"]) + f", {len(las['vlrs'])} VLRs, "
+                     f"{len(las['evlrs'])} EVLRs, extra bytes: {', '.join(las['extra_bytes']) or 'none'}"))
     for name, value in rows:
         table.add_row(name, value)
     make_console().print(table)

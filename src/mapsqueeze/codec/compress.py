@@ -8,8 +8,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapsqueeze.codec.attributes import (
+    DEFAULT_RELATIVE_STEP,
+    DEFAULT_VOXEL_M,
+    AttributeSchema,
+    build_schema,
+    encode_tile_attributes,
+    parse_selection,
+)
 from mapsqueeze.codec.container import (
     MAX_POINTS_PER_TILE,
+    AttributeSection,
     Header,
     TileCoding,
     TileRecord,
@@ -32,7 +41,7 @@ from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
 from mapsqueeze.geometry.validation import validate_points
-from mapsqueeze.io import work_dir
+from mapsqueeze.io import PointCloud, validate_attributes, work_dir
 
 RAW_POINTS_PER_EMBEDDING = 4
 """A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
@@ -49,6 +58,34 @@ ProgressCallback = Callable[[int, int], None]
 """Called with (tiles done, tiles in total) after each tile."""
 
 
+@dataclass(frozen=True)
+class AttributeOptions:
+    """Which attributes to code and how finely (see codec.attributes).
+
+    selection: "all", "none", or attribute names (a comma-separated string or a sequence). voxel_m: edge of the
+    attribute voxels (metres). relative_step: quantisation step of continuous attributes, as a fraction of each
+    attribute's range over the map.
+    """
+
+    selection: str | tuple[str, ...] = "all"
+    voxel_m: float = DEFAULT_VOXEL_M
+    relative_step: float = DEFAULT_RELATIVE_STEP
+
+
+def _attribute_schema(ranges: dict[str, tuple[np.dtype, float, float]], metadata: dict | None,
+                      options: AttributeOptions) -> AttributeSchema | None:
+    """The schema of the selected attributes, or None when there is nothing to code (a geometry-only file)."""
+    names = parse_selection(options.selection, list(ranges))
+    if not names and not metadata:
+        return None
+    return build_schema({name: ranges[name] for name in names}, options.voxel_m, options.relative_step,
+                        metadata or {})
+
+
+def _ranges(attributes: dict[str, np.ndarray]) -> dict[str, tuple[np.dtype, float, float]]:
+    return {name: (values.dtype, float(values.min()), float(values.max())) for name, values in attributes.items()}
+
+
 @dataclass
 class _EncodedTile:
     """One tile while the map is being compressed: its table fields and candidate payloads."""
@@ -60,6 +97,7 @@ class _EncodedTile:
     points: np.ndarray | None  # network embedding (None when the tile is coded raw for sparsity)
     features: np.ndarray | None
     raw: bytes | None  # raw payload, when raw coding is a candidate
+    attributes: bytes = b""  # attribute stream (codec.attributes), when the map codes attributes
     network: bytes | None = None  # network payload, once coded
 
     def record(self) -> TileRecord:
@@ -77,6 +115,9 @@ def compress_map(
     feature_step_std: float = DEFAULT_FEATURE_STEP_STD,
     progress: ProgressCallback | None = None,
     refine_steps: int = 0,
+    attributes: dict[str, np.ndarray] | None = None,
+    metadata: dict | None = None,
+    attribute_options: AttributeOptions = AttributeOptions(),
 ) -> bytes:
     """Compress an (N, 3) float64 map (metres, any coordinate frame) with a loaded CompressionModel.
 
@@ -85,15 +126,21 @@ def compress_map(
     (`CompressionModel.refine`: slower encoding, lower D_e, same format). Tiles are encoded one at a time; only their
     compact embeddings and payloads are kept until the file is assembled (q fits its histograms over all tiles
     before coding them). Deterministic: the same points, model and settings give the same bytes.
+    attributes (name -> (N,) values) selected by attribute_options are coded per tile after the geometry, and
+    metadata (JSON-serialisable, e.g. the LAS header's) is stored; with neither the file is geometry-only.
     """
     check_refine_steps(refine_steps)
     points = validate_points(points, name="map")
+    attributes = validate_attributes(attributes, len(points), name="map")
+    schema = _attribute_schema(_ranges(attributes), metadata, attribute_options)
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
-    tile_points = ((tile.index, points[tile.point_indices]) for tile in tiles)
+    coded = [spec.name for spec in schema.specs] if schema else []
+    tile_points = ((tile.index, points[tile.point_indices],
+                    {name: attributes[name][tile.point_indices] for name in coded}) for tile in tiles)
     return _compress_tiles(tile_points, len(tiles), len(points), origin, model, precision, position_step_m,
-                           feature_step_std, progress, refine_steps)
+                           feature_step_std, progress, refine_steps, schema)
 
 
 def compress_chunks(
@@ -105,40 +152,64 @@ def compress_chunks(
     progress: ProgressCallback | None = None,
     spill_dir: str | os.PathLike | None = None,
     refine_steps: int = 0,
+    attribute_options: AttributeOptions = AttributeOptions(),
 ) -> bytes:
     """compress_map for a map read in chunks (e.g. `mapsqueeze.io.iter_points`): memory bounded by one chunk and
     one tile, whatever the map's size. Gives the same bytes as compress_map on the concatenated chunks.
 
-    chunks() is called twice (pass 1: extent and count; pass 2: points); each call must yield the same (n, 3)
-    float64 chunks in the same order. Pass 2 appends every tile's points to a float64 spill file in a temporary
-    directory (in spill_dir, default the system's; 24 bytes a point), then encodes the tiles one by one.
+    chunks() is called twice (pass 1: extent, count, attribute ranges; pass 2: points); each call must yield the
+    same chunks ((n, 3) float64 arrays, or PointClouds whose attributes and the first one's metadata are coded as
+    compress_map's) in the same order. Pass 2 appends every tile's points (and attributes) to spill files in a
+    temporary directory (in spill_dir, default the system's; 24 bytes a point plus the attributes), then encodes the
+    tiles one by one.
     """
     check_refine_steps(refine_steps)
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
-    for chunk in chunks():
-        chunk_low, chunk_high = bounding_box(chunk)
+    ranges: dict[str, tuple[np.dtype, float, float]] = {}
+    metadata = None
+    for chunk in map(_as_cloud, chunks()):
+        chunk_low, chunk_high = bounding_box(chunk.points)
         lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
+        metadata = chunk.metadata if metadata is None else metadata
+        for name, (dtype, low, high) in _ranges(chunk.attributes).items():
+            previous = ranges.get(name, (dtype, low, high))
+            ranges[name] = (dtype, min(low, previous[1]), max(high, previous[2]))
         n_points += len(chunk)
     if n_points == 0:
         raise InvalidPointCloudError("map: the point cloud is empty")
+    schema = _attribute_schema(ranges, metadata, attribute_options)
+    coded = [(spec.name, spec.dtype) for spec in schema.specs] if schema else []
     origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
     with work_dir("mapsqueeze-tiles-", spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
-        for chunk in chunks():
-            for tile in tile_map(chunk, tile_size, origin=origin, shape=shape):
+        for chunk in map(_as_cloud, chunks()):
+            for tile in tile_map(chunk.points, tile_size, origin=origin, shape=shape):
                 with open(os.path.join(spill, _spill_name(tile.index)), "ab") as stream:
-                    stream.write(chunk[tile.point_indices].tobytes())
+                    stream.write(chunk.points[tile.point_indices].tobytes())
+                for column, (name, dtype) in enumerate(coded):
+                    with open(os.path.join(spill, _spill_name(tile.index, column)), "ab") as stream:
+                        stream.write(np.asarray(chunk.attributes[name], dtype=dtype)[tile.point_indices].tobytes())
                 counts[tile.index] = counts.get(tile.index, 0) + len(tile.point_indices)
         if sum(counts.values()) != n_points:
             raise InvalidPointCloudError("map: the input changed between the two reading passes")
         indices = sorted(counts)  # the order of tile_map: by (i, j, k)
         for index in indices:  # refused before a tile that large is read back into memory
             _check_tile_size(index, counts[index])
-        tile_points = ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3))
+        tile_points = ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3),
+                        {name: np.fromfile(os.path.join(spill, _spill_name(index, column)), dtype=dtype)
+                         for column, (name, dtype) in enumerate(coded)})
                        for index in indices)
         return _compress_tiles(tile_points, len(indices), n_points, origin, model, precision, position_step_m,
-                               feature_step_std, progress, refine_steps)
+                               feature_step_std, progress, refine_steps, schema)
+
+
+def _as_cloud(chunk) -> PointCloud:
+    """A chunk as a PointCloud with validated points and attributes (bare (n, 3) arrays have none)."""
+    if not isinstance(chunk, PointCloud):
+        return PointCloud(validate_points(chunk, name="map"))
+    points = validate_points(chunk.points, name="map")
+    return PointCloud(points, validate_attributes(chunk.attributes, len(points), name="map"), chunk.metadata)
 
 
 def check_refine_steps(steps: int) -> None:
@@ -153,8 +224,10 @@ def _check_tile_size(index: tuple[int, int, int], n_points: int) -> None:
             f"tile {index} holds {n_points:,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may hold")
 
 
-def _spill_name(index: tuple[int, int, int]) -> str:
-    return "tile_{}_{}_{}.f64".format(*index)
+def _spill_name(index: tuple[int, int, int], attribute: int | None = None) -> str:
+    """Spill file of a tile's float64 points, or of its attribute number `attribute`."""
+    suffix = "f64" if attribute is None else f"a{attribute}"
+    return "tile_{}_{}_{}.{}".format(*index, suffix)
 
 
 def _compress_tiles(
@@ -168,13 +241,19 @@ def _compress_tiles(
     feature_step_std: float,
     progress: ProgressCallback | None,
     refine_steps: int,
+    schema: AttributeSchema | None = None,
 ) -> bytes:
-    """Encode (tile index, its float64 world points) pairs, given in tile order, and assemble the container."""
+    """Encode (tile index, its float64 world points, its attributes) triples, given in tile order, and assemble
+    the container (with an attribute section when `schema` is given)."""
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     encoded = []
-    for done, (index, points) in enumerate(tile_points, start=1):
-        encoded.append(_encode_tile(index, origin + np.asarray(index) * tile_size, points, tile_size, model,
-                                    refine_steps))
+    for done, (index, points, attributes) in enumerate(tile_points, start=1):
+        tile = _encode_tile(index, origin + np.asarray(index) * tile_size, points, tile_size, model, refine_steps)
+        if schema is not None and schema.specs:
+            local = to_local(points, frame_origin(origin + np.asarray(index) * tile_size, tile.bounds_lo, tile_size),
+                             tile_size)
+            tile.attributes = encode_tile_attributes(local, attributes, schema, tile_size)
+        encoded.append(tile)
         if progress:
             progress(done, n_tiles)
     n_features = int(model.config.embedding_dim)
@@ -198,7 +277,8 @@ def _compress_tiles(
         raw_step_m=RAW_STEP_M,
         quant_model=quant_model,
     )
-    return serialise_container(header, [tile.record() for tile in encoded])
+    section = None if schema is None else AttributeSection(schema, [tile.attributes for tile in encoded if schema.specs])
+    return serialise_container(header, [tile.record() for tile in encoded], section)
 
 
 def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_points: np.ndarray,

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapsqueeze.codec.attributes import AttributeSchema
 from mapsqueeze.codec.embedding import CellGrid, Precision, QuantModel
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.codec.rawtile import axis_bits
@@ -41,6 +42,8 @@ MAX_TILE_SIZE_M = 10_000.0
 """Largest tile side a header may state (metres); shipped models use 40 x 40 x 15 m."""
 BOUNDS_STEPS = 65535
 """Tile bounds are stored as uint16 fractions of the tile size (0.6 mm for a 40 m tile), rounded outwards."""
+ATTRIBUTES_FLAG = 1
+"""Preamble flag: an attribute section (schema, file metadata, one attribute stream per tile) follows the payloads."""
 
 
 class TileCoding(enum.IntEnum):
@@ -184,10 +187,29 @@ class TileRecord:
     payload: bytes
 
 
-def serialise_container(header: Header, tiles: list[TileRecord]) -> bytes:
-    """The complete file: preamble, header, header CRC, tile table (length, entries, CRC), payloads in table order."""
+@dataclass(frozen=True)
+class AttributeSection:
+    """What follows the payloads when ATTRIBUTES_FLAG is set: the schema and one attribute stream per tile."""
+
+    schema: AttributeSchema
+    streams: list[bytes]  # table order; empty when the schema codes no attribute (metadata only)
+
+    def serialise(self) -> bytes:
+        index = ByteWriter()
+        index.raw(self.schema.serialise())
+        for stream in self.streams:
+            index.varint(len(stream))
+            index.pack("I", zlib.crc32(stream))
+        body = index.getvalue()
+        return b"".join([_TABLE_LENGTH.pack(len(body)), body, _CRC.pack(zlib.crc32(body)), *self.streams])
+
+
+def serialise_container(header: Header, tiles: list[TileRecord], attributes: AttributeSection | None = None) -> bytes:
+    """The complete file: preamble, header, header CRC, tile table (length, entries, CRC), payloads in table order,
+    then the attribute section when `attributes` is given (without it the bytes are those of a geometry-only file)."""
     body = header.serialise()
-    head = _PREAMBLE.pack(MAGIC, VERSION, 0, len(body)) + body
+    flags = 0 if attributes is None else ATTRIBUTES_FLAG
+    head = _PREAMBLE.pack(MAGIC, VERSION, flags, len(body)) + body
     head += _CRC.pack(zlib.crc32(head))
     table = ByteWriter()
     offset = 0
@@ -202,7 +224,7 @@ def serialise_container(header: Header, tiles: list[TileRecord]) -> bytes:
         offset += len(tile.payload)
     entries = table.getvalue()
     return b"".join([head, _TABLE_LENGTH.pack(len(entries)), entries, _CRC.pack(zlib.crc32(entries)),
-                     *(tile.payload for tile in tiles)])
+                     *(tile.payload for tile in tiles), attributes.serialise() if attributes else b""])
 
 
 class ContainerReader:
@@ -219,8 +241,8 @@ class ContainerReader:
             raise self._error("not a .msq container (bad magic bytes)")
         if version != VERSION:
             raise self._error(f"unsupported .msq version {version} (this mapsqueeze reads version {VERSION})")
-        if flags:
-            raise self._error(f"reserved flags 0x{flags:04x} set (written by a newer mapsqueeze?)")
+        if flags & ~ATTRIBUTES_FLAG:
+            raise self._error(f"reserved flags 0x{flags & ~ATTRIBUTES_FLAG:04x} set (written by a newer mapsqueeze?)")
         if body_length > MAX_HEADER_BYTES or _PREAMBLE.size + body_length + _CRC.size > self.file_size:
             raise self._error(f"header of {body_length} bytes does not fit in the file (truncated?)")
         body = self._read_at(_PREAMBLE.size, body_length + _CRC.size, "header truncated")
@@ -231,6 +253,43 @@ class ContainerReader:
         except ContainerError as exc:
             raise self._error(str(exc)) from None
         self.entries = self._read_table(_PREAMBLE.size + body_length + _CRC.size)
+        self.attribute_schema: AttributeSchema | None = None
+        self.attribute_entries: list[tuple[int, int, int]] = []  # (offset, length, crc32) per tile
+        payload_end = self.entries[-1].offset + self.entries[-1].length
+        if flags & ATTRIBUTES_FLAG:
+            self._read_attribute_section(payload_end)
+        elif payload_end != self.file_size:
+            raise self._error(f"{self.file_size - payload_end} unexpected bytes after the last tile")
+
+    def _read_attribute_section(self, start: int) -> None:
+        (size,) = _TABLE_LENGTH.unpack(self._read_at(start, _TABLE_LENGTH.size, "attribute section truncated"))
+        start += _TABLE_LENGTH.size
+        if size > MAX_HEADER_BYTES or start + size + _CRC.size > self.file_size:
+            raise self._error(f"attribute section of {size} bytes does not fit in the file (truncated?)")
+        raw = self._read_at(start, size + _CRC.size, "attribute section truncated")
+        if zlib.crc32(raw[:size]) != _CRC.unpack(raw[size:])[0]:
+            raise self._error("attribute section CRC mismatch (corrupt attribute section)")
+        reader = ByteReader(raw[:size], f"{self.name}: attribute section")
+        self.attribute_schema = AttributeSchema.read(reader)
+        offset = start + size + _CRC.size
+        if self.attribute_schema.specs:
+            for _ in self.entries:
+                length = reader.varint(limit=2**32)
+                (crc,) = reader.unpack("I")
+                self.attribute_entries.append((offset, length, crc))
+                offset += length
+        reader.expect_end()
+        if offset != self.file_size:
+            raise self._error(f"attribute streams end at byte {offset}, the file at {self.file_size} (truncated?)")
+
+    def attribute_stream(self, position: int) -> bytes:
+        """The CRC-checked attribute stream of tile `position`."""
+        offset, length, crc = self.attribute_entries[position]
+        label = self.entries[position].label(position)
+        data = self._read_at(offset, length, f"{label}: attribute stream truncated")
+        if zlib.crc32(data) != crc:
+            raise self._error(f"{label}: attribute stream CRC mismatch (corrupt attributes)")
+        return data
 
     def _error(self, message: str) -> ContainerError:
         return ContainerError(f"{self.name}: {message}")
@@ -286,8 +345,6 @@ class ContainerReader:
             expected_offset += length
             previous_index = index
         reader.expect_end()
-        if expected_offset != self.file_size:
-            raise self._error(f"{self.file_size - expected_offset} unexpected bytes after the last tile")
         if sum(entry.n_points for entry in entries) != self.header.n_points:
             raise self._error("tile point counts do not add up to the header's")
         return entries

@@ -7,6 +7,7 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from mapsqueeze.codec.attributes import decode_tile_attributes
 from mapsqueeze.codec.compress import ProgressCallback
 from mapsqueeze.codec.container import (
     DEFAULT_MAX_TILE_POINTS,
@@ -22,6 +23,7 @@ from mapsqueeze.codec.embedding import Precision, decode_float, dequantise
 from mapsqueeze.codec.rawtile import decode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.geometry.resample import resample_to_count
+from mapsqueeze.io import PointCloud
 
 MIN_DENSITY_EXTENT_M = 1.0
 """--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
@@ -176,6 +178,24 @@ def iter_decoded_tiles(
     the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
     read and decoded, and the output is cropped to it. density / n_points / max_tile_points: see `target_counts`.
     """
+    for cloud in iter_decoded_clouds(source, model, bbox, density, n_points, progress, max_tile_points,
+                                     attributes=False):
+        yield cloud.points
+
+
+def iter_decoded_clouds(
+    source: bytes | str | os.PathLike,
+    model=None,
+    bbox: Sequence[float] | None = None,
+    density: float | None = None,
+    n_points: int | None = None,
+    progress: ProgressCallback | None = None,
+    max_tile_points: int = DEFAULT_MAX_TILE_POINTS,
+    attributes: bool = True,
+) -> Iterator[PointCloud]:
+    """As `iter_decoded_tiles`, yielding each tile as a PointCloud: its world points, the attributes coded in the
+    file (each decoded point takes its nearest attribute voxel's values; none with attributes=False) and the
+    file's metadata."""
     reader, stream = open_container(source)
     with stream:
         header = reader.header
@@ -185,13 +205,22 @@ def iter_decoded_tiles(
         counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points, max_tile_points)
         if any(reader.entries[p].coding is TileCoding.network for p in selected):
             model = _load_matching_model(model, header, reader.name)
+        schema = reader.attribute_schema
+        metadata = schema.metadata if schema else {}
         for done, (position, count) in enumerate(zip(selected, counts), start=1):
             if count:
-                world = tile_frame(header, reader.entries[position]) + decode_tile(reader, position, model, count)
+                local = decode_tile(reader, position, model, count)
+                values = {}
+                if attributes and reader.attribute_entries:
+                    values = decode_tile_attributes(reader.attribute_stream(position), local, schema,
+                                                    np.asarray(header.tile_size),
+                                                    f"{reader.name}: {reader.entries[position].label(position)}")
+                world = tile_frame(header, reader.entries[position]) + local
                 if box is not None:
-                    world = world[((world >= box[0]) & (world <= box[1])).all(axis=1)]
+                    inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
+                    world, values = world[inside], {name: v[inside] for name, v in values.items()}
                 if len(world):
-                    yield world
+                    yield PointCloud(world, values, metadata)
             if progress:
                 progress(done, len(selected))
 

@@ -1,0 +1,255 @@
+"""Per-point attributes (intensity, colour, labels, ...) coded per tile as a coarse voxel field.
+
+Each tile's points are binned into cubic voxels of `voxel_m` in the tile frame. The occupied voxels (sorted Morton
+codes, gap coded like raw tiles) carry one value per attribute: continuous attributes (floats, and integer fields
+such as intensity or colour, `CONTINUOUS_NAMES`) the median of the voxel's values (the value that minimises the
+mean absolute error), quantised to `step` above the map's minimum, coded as differences along the Morton order;
+categorical attributes (other integers: labels, classification, ring, return number) the voxel's most frequent
+value, coded as an index into the tile's sorted palette, again as differences along the Morton order. A decoded
+point takes the values of the nearest occupied voxel centre. Layout: docs/format.md, "Attributes".
+"""
+
+from __future__ import annotations
+
+import json
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from mapsqueeze.codec.entropy import (
+    ByteReader,
+    ByteWriter,
+    Histogram,
+    SymbolReader,
+    SymbolWriter,
+    decode_gaps,
+    encode_gaps,
+    fit_gap_buckets,
+)
+from mapsqueeze.codec.rawtile import axis_bits
+from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.geometry.morton import morton_cells, morton_codes
+
+DEFAULT_VOXEL_M = 0.25
+"""Edge of the attribute voxels (metres): the spatial resolution of decoded attributes."""
+DEFAULT_RELATIVE_STEP = 1 / 256
+"""Quantisation step of continuous attributes as a fraction of the attribute's range over the map."""
+MIN_RELATIVE_STEP = 1e-6
+MIN_VOXEL_M = 0.01
+CONTINUOUS_NAMES = frozenset({"intensity", "reflectance", "red", "green", "blue", "nir", "gps_time", "time",
+                              "timestamp", "scan_angle", "range"})
+"""Integer attributes with these names are continuous (median, quantised); other integers are categorical."""
+CONTINUOUS, CATEGORICAL = 0, 1
+_MAX_ATTRIBUTES = 255
+_MAX_METADATA_BYTES = 1 << 24
+_MAX_PALETTE = 1 << 20
+
+
+@dataclass(frozen=True)
+class AttributeSpec:
+    """One coded attribute: name, numpy dtype (restored on decoding), kind, and for continuous ones the
+    quantisation origin `low` and `step` (value = low + q * step)."""
+
+    name: str
+    dtype: np.dtype
+    kind: int
+    low: float = 0.0
+    step: float = 1.0
+
+
+@dataclass(frozen=True)
+class AttributeSchema:
+    """The container's attribute section header: voxel edge, attributes, file metadata (JSON)."""
+
+    voxel_m: float
+    specs: tuple[AttributeSpec, ...]
+    metadata: dict
+
+    def serialise(self) -> bytes:
+        writer = ByteWriter()
+        writer.pack("d", self.voxel_m)
+        writer.pack("B", len(self.specs))
+        for spec in self.specs:
+            name, dtype = spec.name.encode(), spec.dtype.str.encode()
+            writer.pack("B", len(name))
+            writer.raw(name)
+            writer.pack("B", len(dtype))
+            writer.raw(dtype)
+            writer.pack("Bdd", spec.kind, spec.low, spec.step)
+        metadata = zlib.compress(json.dumps(self.metadata, sort_keys=True).encode(), 9) if self.metadata else b""
+        writer.varint(len(metadata))
+        writer.raw(metadata)
+        return writer.getvalue()
+
+    @classmethod
+    def read(cls, reader: ByteReader) -> "AttributeSchema":
+        (voxel_m, count) = reader.unpack("dB")
+        if not (np.isfinite(voxel_m) and voxel_m >= MIN_VOXEL_M):
+            raise reader.fail(f"attribute voxel of {voxel_m} m")
+        specs = []
+        for _ in range(count):
+            try:
+                name = reader.raw(reader.unpack("B")[0]).decode()
+                dtype = np.dtype(reader.raw(reader.unpack("B")[0]).decode())
+            except (UnicodeDecodeError, TypeError, ValueError):
+                raise reader.fail("bad attribute name or dtype") from None
+            kind, low, step = reader.unpack("Bdd")
+            if dtype.kind not in "iuf" or kind not in (CONTINUOUS, CATEGORICAL) or not np.isfinite([low, step]).all() \
+                    or step <= 0 or name in {spec.name for spec in specs}:
+                raise reader.fail(f"bad attribute {name!r}")
+            specs.append(AttributeSpec(name, dtype, kind, low, step))
+        length = reader.varint(limit=_MAX_METADATA_BYTES)
+        metadata = {}
+        if length:
+            try:
+                metadata = json.loads(zlib.decompress(reader.raw(length)))
+            except (zlib.error, ValueError):
+                raise reader.fail("corrupt metadata") from None
+            if not isinstance(metadata, dict):
+                raise reader.fail("metadata is not a JSON object")
+        return cls(voxel_m, tuple(specs), metadata)
+
+
+def is_continuous(name: str, dtype: np.dtype) -> bool:
+    return dtype.kind == "f" or name in CONTINUOUS_NAMES
+
+
+def parse_selection(selection: str | list[str] | tuple[str, ...] | None, names: list[str]) -> list[str]:
+    """Attribute names to code: "all" (default), "none", or a comma-separated list / sequence of names."""
+    if selection is None or selection == "all":
+        return list(names)
+    if selection == "none":
+        return []
+    wanted = [part.strip() for part in selection.split(",")] if isinstance(selection, str) else list(selection)
+    unknown = [name for name in wanted if name not in names]
+    if unknown:
+        raise InvalidPointCloudError(f"no attribute {', '.join(unknown)} in the input (it has: "
+                                     f"{', '.join(names) or 'none'})")
+    return [name for name in names if name in wanted]
+
+
+def build_schema(ranges: dict[str, tuple[np.dtype, float, float]], voxel_m: float, relative_step: float,
+                 metadata: dict) -> AttributeSchema:
+    """The schema for attributes with their map-wide (dtype, minimum, maximum)."""
+    if not (np.isfinite(voxel_m) and voxel_m >= MIN_VOXEL_M):
+        raise InvalidPointCloudError(f"attribute voxel must be at least {MIN_VOXEL_M} m, got {voxel_m}")
+    if not (np.isfinite(relative_step) and MIN_RELATIVE_STEP <= relative_step <= 1):
+        raise InvalidPointCloudError(f"attribute step must be a fraction of the range from {MIN_RELATIVE_STEP:g} to "
+                                     f"1, got {relative_step}")
+    if len(ranges) > _MAX_ATTRIBUTES:
+        raise InvalidPointCloudError(f"{len(ranges)} attributes; at most {_MAX_ATTRIBUTES} can be coded")
+    specs = []
+    for name, (dtype, low, high) in ranges.items():
+        if not np.isfinite([low, high]).all():
+            raise InvalidPointCloudError(f"attribute {name!r} has NaN or infinite values")
+        if is_continuous(name, dtype):
+            step = max((high - low) * relative_step, 1.0 if dtype.kind in "iu" else 0.0)
+            specs.append(AttributeSpec(name, dtype, CONTINUOUS, float(low), float(step) if step > 0 else 1.0))
+        else:
+            specs.append(AttributeSpec(name, dtype, CATEGORICAL))
+    return AttributeSchema(float(voxel_m), tuple(specs), metadata)
+
+
+def _voxels(points_local: np.ndarray, tile_size: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique Morton codes of the occupied voxels and each point's voxel position in them."""
+    bits = axis_bits(tile_size, voxel_m)
+    cells = np.clip(np.floor(np.asarray(points_local, dtype=np.float64) / voxel_m), 0, 2**bits - 1)
+    return np.unique(morton_codes(cells.astype(np.int64), bits), return_inverse=True)
+
+
+def _voxel_medians(values: np.ndarray, voxel: np.ndarray, n_voxels: int) -> np.ndarray:
+    """Median (lower middle) of each voxel's values."""
+    order = np.lexsort((values, voxel))
+    counts = np.bincount(voxel, minlength=n_voxels)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return values[order][starts + (counts - 1) // 2]
+
+
+def _voxel_modes(symbols: np.ndarray, voxel: np.ndarray, n_voxels: int) -> np.ndarray:
+    """Most frequent symbol of each voxel (the smallest one on ties)."""
+    n_symbols = int(symbols.max()) + 1
+    pair_counts = np.bincount(voxel * n_symbols + symbols, minlength=n_voxels * n_symbols)
+    return pair_counts.reshape(n_voxels, n_symbols).argmax(axis=1)
+
+
+def encode_tile_attributes(points_local: np.ndarray, attributes: dict[str, np.ndarray], schema: AttributeSchema,
+                           tile_size: np.ndarray) -> bytes:
+    """A tile's attribute stream from its points (metres, tile frame) and their attribute values."""
+    codes, voxel = _voxels(points_local, tile_size, schema.voxel_m)
+    gaps = np.diff(codes, prepend=0)
+    buckets = fit_gap_buckets(gaps)
+    writer, symbols = ByteWriter(), SymbolWriter()
+    writer.varint(len(codes))
+    buckets.write(writer)
+    encode_gaps(symbols, gaps, buckets)
+    for spec in schema.specs:
+        values = np.asarray(attributes[spec.name], dtype=np.float64)
+        if spec.kind == CONTINUOUS:
+            quantised = np.round((values - spec.low) / spec.step).astype(np.int64)
+            per_voxel = _voxel_medians(quantised, voxel, len(codes))
+        else:
+            palette, symbol = np.unique(values, return_inverse=True)
+            if len(palette) > _MAX_PALETTE:
+                raise InvalidPointCloudError(f"attribute {spec.name!r} has {len(palette):,} distinct values in one "
+                                             f"tile, more than the {_MAX_PALETTE:,} a categorical attribute may")
+            palette = palette.astype(np.int64)
+            writer.varint(len(palette))
+            writer.svarint(int(palette[0]))
+            for gap in np.diff(palette):
+                writer.varint(int(gap))
+            per_voxel = _voxel_modes(symbol, voxel, len(codes))
+        deltas = np.diff(per_voxel, prepend=0)
+        histogram = Histogram.fit(deltas)
+        histogram.write(writer)
+        symbols.histogram(deltas, histogram)
+    writer.raw(symbols.getvalue())
+    return writer.getvalue()
+
+
+def decode_tile_attributes(stream: bytes, points_local: np.ndarray, schema: AttributeSchema,
+                           tile_size: np.ndarray, what: str) -> dict[str, np.ndarray]:
+    """Attributes of decoded points (metres, tile frame): each point takes its nearest coded voxel's values."""
+    bits = axis_bits(tile_size, schema.voxel_m)
+    reader = ByteReader(stream, what)
+    n_voxels = reader.varint(limit=2 ** min(3 * bits, 40))
+    if n_voxels == 0:
+        raise reader.fail("attribute stream without voxels")
+    buckets = Histogram.read(reader)
+    tables = []
+    for spec in schema.specs:
+        palette = None
+        if spec.kind == CATEGORICAL:
+            size = reader.varint(limit=min(_MAX_PALETTE, n_voxels) + 1)
+            if size == 0:
+                raise reader.fail(f"empty palette of {spec.name!r}")
+            palette = np.cumsum([reader.svarint(limit=2**62)] + [reader.varint(limit=2**62) for _ in range(size - 1)])
+        tables.append((palette, Histogram.read(reader)))
+    symbols = SymbolReader(reader.raw(reader.remaining), what)
+    codes = np.cumsum(decode_gaps(symbols, n_voxels, buckets))
+    if codes.min() < 0 or codes.max() >= 2 ** (3 * bits) or (np.diff(codes) <= 0).any():
+        raise reader.fail("attribute voxels out of order or outside the tile")
+    per_voxel = []
+    for spec, (palette, histogram) in zip(schema.specs, tables):
+        values = np.cumsum(symbols.histogram(histogram, n_voxels))
+        if palette is not None:
+            if values.min() < 0 or values.max() >= len(palette):
+                raise reader.fail(f"palette index of {spec.name!r} out of range")
+            values = palette[values]
+        per_voxel.append(values)
+    symbols.finish()
+    centres = (morton_cells(codes) + 0.5) * schema.voxel_m
+    _, nearest = KDTree(centres).query(np.asarray(points_local, dtype=np.float64), k=1)
+    nearest = nearest.astype(np.int64)
+    return {spec.name: _restore(spec, values[nearest]) for spec, values in zip(schema.specs, per_voxel)}
+
+
+def _restore(spec: AttributeSpec, values: np.ndarray) -> np.ndarray:
+    """Decoded integers -> the attribute's dtype (continuous: low + q * step, rounded and clipped for integers)."""
+    if spec.kind == CONTINUOUS:
+        values = spec.low + values * spec.step
+    if spec.dtype.kind in "iu":
+        info = np.iinfo(spec.dtype)
+        values = np.clip(np.round(values), info.min, info.max)
+    return values.astype(spec.dtype)
