@@ -37,7 +37,7 @@ from mapsqueeze.codec.entropy import (
 )
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
-from mapsqueeze.io import read_points, write_points
+from mapsqueeze.io import read_point_cloud, read_points, write_points
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
 
 UTM = np.array([500_000.123, 4_000_000.456, 50.0])
@@ -315,8 +315,11 @@ def test_compress_file_streams_chunks_and_gives_the_in_memory_bytes(map_points, 
     streamed = compress_chunks(lambda: iter_points(source, chunk_points=997), model, Precision.q, spill_dir=spill)
     assert streamed == expected
     assert list(spill.iterdir()) == []  # spill files removed
+    cloud = read_point_cloud(source)  # LAS carries its standard fields and header: compress_file codes them too
+    full = mapsqueeze.compress(cloud.points, model=model, attributes=cloud.attributes, metadata=cloud.metadata)
+    assert (full == expected) == (suffix != ".laz")
     mapsqueeze.compress_file(source, tmp_path / "map.msq", model=model)
-    assert (tmp_path / "map.msq").read_bytes() == expected
+    assert (tmp_path / "map.msq").read_bytes() == full
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".las", ".npy", ".pcd"])
