@@ -196,3 +196,26 @@ def overlap_warning(gt: np.ndarray, rec: np.ndarray, d_e: float) -> str | None:
         return (f"D_e {d_e:.3f} m is more than {MAX_D_E_SHARE_OF_EXTENT:.0%} of the ground truth's extent "
                 f"({extent:.1f} m diagonal): the clouds barely overlap (different coordinate frames?)")
     return None
+
+
+def nearest_original_values(gt: np.ndarray, gt_values: np.ndarray, rec: np.ndarray) -> np.ndarray:
+    """For each reconstructed point, the attribute value of its nearest ground-truth point."""
+    return np.asarray(gt_values)[cKDTree(gt).query(rec, k=1)[1]]
+
+
+def attribute_error(gt: np.ndarray, gt_values: np.ndarray, rec: np.ndarray, rec_values: np.ndarray) -> float:
+    """Mean |decoded value - value of the nearest ground-truth point| over the reconstructed points (attribute
+    units): the attribute error of the issue's benchmark."""
+    truth = nearest_original_values(gt, gt_values, rec).astype(np.float64)
+    return float(np.abs(np.asarray(rec_values, dtype=np.float64) - truth).mean())
+
+
+def constant_guess_error(gt: np.ndarray, gt_values: np.ndarray, rec: np.ndarray) -> float:
+    """`attribute_error` of the best constant guess (the median of the ground-truth values) at the same points."""
+    truth = nearest_original_values(gt, gt_values, rec).astype(np.float64)
+    return float(np.abs(np.median(np.asarray(gt_values, dtype=np.float64)) - truth).mean())
+
+
+def label_accuracy(gt: np.ndarray, gt_labels: np.ndarray, rec: np.ndarray, rec_labels: np.ndarray) -> float:
+    """Share of reconstructed points whose label equals their nearest ground-truth point's."""
+    return float((np.asarray(rec_labels) == nearest_original_values(gt, gt_labels, rec)).mean())

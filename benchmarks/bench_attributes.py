@@ -1,0 +1,170 @@
+"""Attribute coding quality on real LiDAR data, against a constant guess and against MPEG G-PCC (tmc3).
+
+    PYTHONPATH=src python benchmarks/bench_attributes.py --out results/attributes [--tmc3 PATH]
+
+Clouds: the KITTI scan 000000.bin (reflectance), a 40 x 40 x 15 m KITTI map of the six scans 000000-000005
+placed with their poses (reflectance), and the nuScenes sweep (intensity; ring as a categorical attribute).
+Each is compressed with the shipped e1 model through `mapsqueeze.compress` / `decompress_cloud` (what
+`compress_file` / `decompress_file` run) at several attribute voxel edges and quantisation steps, coding one
+attribute at a time. Measured (mapsqueeze.metrics): attribute error = mean |decoded value - value of the nearest
+original point| over the decoded points, the same for the best constant guess (the median), their ratio, and for
+categorical attributes the accuracy; attribute bits per input point = the attribute section's bytes * 8 / N.
+G-PCC codes the same cloud's positions on a 1 cm grid (near lossless) and reflectance/intensity (8 bits) with
+RAHT and with lifting at several QPs; its attribute bits are the "reflectances bitstream size" it reports. The
+LAZ row: the KITTI map written as LAZ (intensity = round(100 x reflectance)) through compress_file/decompress_file.
+Writes results.md and results.json under --out.
+"""
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+import mapsqueeze
+from mapsqueeze.codec.compress import AttributeOptions
+from mapsqueeze.io import read_point_cloud, write_points
+from mapsqueeze.metrics import attribute_error, constant_guess_error, label_accuracy
+from mapsqueeze.shared import real_data_dir, tmc3_executable
+
+VOXELS_M = (0.25, 0.5, 1.0)
+STEPS = (1 / 64, 1 / 256)
+GPCC_QPS = (22, 28, 34, 40, 46, 51)
+GPCC_TRANSFORMS = {"raht": 0, "lifting": 2}
+MAP_HALF_EXTENT_M = (20.0, 20.0)
+MAP_HEIGHT_M = 15.0
+
+
+def kitti_map(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The six KITTI scans in the frame of the first, cropped to 40 x 40 m around it and 15 m high."""
+    poses = np.loadtxt(folder / "poses_lidar_kissicp.txt").reshape(-1, 3, 4)
+    points, reflectance = [], []
+    for index, pose in enumerate(poses):
+        cloud = read_point_cloud(folder / f"{index:06d}.bin")
+        points.append(cloud.points @ pose[:, :3].T + pose[:, 3])
+        reflectance.append(cloud.attributes["reflectance"])
+    points, reflectance = np.concatenate(points), np.concatenate(reflectance)
+    keep = (np.abs(points[:, :2]) <= MAP_HALF_EXTENT_M).all(axis=1)
+    keep &= points[:, 2] <= points[keep, 2].min() + MAP_HEIGHT_M
+    return points[keep], reflectance[keep]
+
+
+def clouds(real: Path) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
+    kitti = read_point_cloud(real / "kitti_seq00_scans" / "000000.bin")
+    nuscenes = read_point_cloud(next(real.glob("*.pcd.bin")))
+    map_points, map_reflectance = kitti_map(real / "kitti_seq00_scans")
+    return {
+        "KITTI scan 000000": (kitti.points, {"reflectance": kitti.attributes["reflectance"]}),
+        "KITTI 6-scan map": (map_points, {"reflectance": map_reflectance}),
+        "nuScenes sweep": (nuscenes.points, {"intensity": nuscenes.attributes["intensity"],
+                                             "ring": nuscenes.attributes["ring"].astype(np.uint8)}),
+    }
+
+
+def measure(points, values: dict[str, np.ndarray], name: str, voxel: float, step: float) -> dict:
+    data = mapsqueeze.compress(points, attributes=values, attribute_options=AttributeOptions(name, voxel, step))
+    decoded = mapsqueeze.decompress_cloud(data)
+    row = {"attribute": name, "voxel_m": voxel, "step": step,
+           "attribute_bpp": 8 * mapsqueeze.info(data).attribute_bytes / len(points),
+           "file_bpp": 8 * len(data) / len(points)}
+    if np.issubdtype(values[name].dtype, np.integer) and name == "ring":
+        row["accuracy"] = label_accuracy(points, values[name], decoded.points, decoded.attributes[name])
+    else:
+        row["error"] = attribute_error(points, values[name], decoded.points, decoded.attributes[name])
+        row["constant_error"] = constant_guess_error(points, values[name], decoded.points)
+        row["ratio"] = row["error"] / row["constant_error"]
+    return row
+
+
+def gpcc(tmc3: str, points: np.ndarray, values: np.ndarray, scale: float, transform: int, qp: int,
+         work: Path) -> dict:
+    """tmc3 on positions rounded to 1 cm and round(values * scale) as 8-bit reflectance; error in value units."""
+    origin = points.min(axis=0)
+    grid = np.round((points - origin) / 0.01)
+    table = np.empty(len(grid), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("reflectance", "<u2")])
+    table["x"], table["y"], table["z"] = grid.T
+    table["reflectance"] = np.clip(np.round(values * scale), 0, 255)
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(table)}\nproperty float64 x\n"
+              "property float64 y\nproperty float64 z\nproperty uint16 reflectance\nend_header\n")
+    (work / "in.ply").write_bytes(header.encode() + table.tobytes())
+    log = subprocess.run([tmc3, "--mode=0", f"--uncompressedDataPath={work / 'in.ply'}",
+                          f"--compressedStreamPath={work / 'out.bin'}", "--mergeDuplicatedPoints=0",
+                          f"--transformType={transform}", f"--qp={qp}", "--bitdepth=8", "--attribute=reflectance"],
+                         capture_output=True, text=True, check=True).stdout
+    attribute_bytes = int(re.search(r"reflectances bitstream size (\d+) B", log).group(1))
+    subprocess.run([tmc3, "--mode=1", f"--compressedStreamPath={work / 'out.bin'}",
+                    f"--reconstructedDataPath={work / 'rec.ply'}", "--outputBinaryPly=1"],
+                   capture_output=True, text=True, check=True)
+    decoded = read_point_cloud(work / "rec.ply")
+    decoded_points = decoded.points * 0.01 + origin
+    decoded_values = decoded.attributes[next(iter(decoded.attributes))].astype(np.float64) / scale
+    error = attribute_error(points, values, decoded_points, decoded_values)
+    return {"qp": qp, "attribute_bpp": 8 * attribute_bytes / len(points), "error": error,
+            "ratio": error / constant_guess_error(points, values, decoded_points)}
+
+
+def laz_route(points: np.ndarray, reflectance: np.ndarray, work: Path) -> dict:
+    intensity = np.round(reflectance * 100).astype(np.uint16)
+    write_points(work / "map.laz", points, attributes={"intensity": intensity})
+    info = mapsqueeze.compress_file(work / "map.laz", work / "map.msq", attribute_options=AttributeOptions(
+        "intensity"))
+    mapsqueeze.decompress_file(work / "map.msq", work / "out.laz")
+    decoded = read_point_cloud(work / "out.laz")
+    error = attribute_error(points, intensity, decoded.points, decoded.attributes["intensity"])
+    return {"attribute_bpp": 8 * info.attribute_bytes / len(points), "error": error,
+            "ratio": error / constant_guess_error(points, intensity, decoded.points),
+            "fields": sorted(decoded.attributes)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("results/attributes"))
+    parser.add_argument("--tmc3", default=tmc3_executable())
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    real = real_data_dir()
+    results = {"mapsqueeze": {}, "gpcc": {}}
+    lines = ["# Attribute coding (benchmarks/bench_attributes.py)", ""]
+    with tempfile.TemporaryDirectory() as temp:
+        work = Path(temp)
+        for cloud_name, (points, values) in clouds(real).items():
+            rows = [measure(points, values, name, voxel, step)
+                    for name in values for voxel in VOXELS_M for step in (STEPS if name != "ring" else STEPS[:1])]
+            results["mapsqueeze"][cloud_name] = {"n_points": len(points), "rows": rows,
+                                                 "geometry_bpp": 8 * len(mapsqueeze.compress(points)) / len(points)}
+            name = next(iter(values))
+            scale = 100.0 if name == "reflectance" else 1.0
+            results["gpcc"][cloud_name] = {kind: [gpcc(args.tmc3, points, values[name], scale, code, qp, work)
+                                                  for qp in GPCC_QPS] for kind, code in GPCC_TRANSFORMS.items()}
+            lines += [f"## {cloud_name} ({len(points):,} points, geometry "
+                      f"{results['mapsqueeze'][cloud_name]['geometry_bpp']:.3f} bpp with e1)", "",
+                      "| codec | attribute | setting | attribute bpp | error | constant guess | ratio / accuracy |",
+                      "|---|---|---|---|---|---|---|"]
+            for row in rows:
+                quality = (f"{row['ratio']:.3f}" if "ratio" in row else f"accuracy {row['accuracy']:.4f}")
+                lines.append(f"| mapsqueeze | {row['attribute']} | voxel {row['voxel_m']:g} m, step 1/"
+                             f"{round(1 / row['step'])} | {row['attribute_bpp']:.3f} | {row.get('error', float('nan')):.4f} | "
+                             f"{row.get('constant_error', float('nan')):.4f} | {quality} |")
+            for kind, gpcc_rows in results["gpcc"][cloud_name].items():
+                for row in gpcc_rows:
+                    lines.append(f"| G-PCC {kind} | {name} | qp {row['qp']} | {row['attribute_bpp']:.3f} | "
+                                 f"{row['error']:.4f} | | {row['ratio']:.3f} |")
+            lines.append("")
+            if cloud_name == "KITTI 6-scan map":
+                results["laz"] = laz_route(points, values["reflectance"], work)
+                lines += [f"LAZ route (intensity = round(100 x reflectance), compress_file/decompress_file, voxel "
+                          f"0.25 m): {results['laz']['attribute_bpp']:.3f} attribute bpp, error "
+                          f"{results['laz']['error']:.3f}, ratio {results['laz']['ratio']:.3f}, fields back: "
+                          f"{', '.join(results['laz']['fields'])}", ""]
+            print(f"done {cloud_name}", file=sys.stderr, flush=True)
+    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    (args.out / "results.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
