@@ -103,7 +103,7 @@ def figure(name: str, points: np.ndarray, out_dir: Path, model: str | None) -> N
     fig.suptitle(name)
     fig.tight_layout()
     with atomic_output(out_dir / f"decoded_{name}.png") as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
+        fig.savefig(tmp, format="png", dpi=80)
     plt.close(fig)
     print(f"{name}: mapsqueeze {ours}, G-PCC {label} {theirs}")
 
