@@ -105,7 +105,10 @@ def figure(name: str, points: np.ndarray, out_dir: Path, model: str | None) -> N
     with atomic_output(out_dir / f"decoded_{name}.png") as tmp:
         fig.savefig(tmp, format="png", dpi=80)
     plt.close(fig)
-    print(f"{name}: mapsqueeze {ours}, G-PCC {label} {theirs}")
+    def line(s: dict) -> str:
+        return f"{s['bpp']:.3f} bpp, D_e {s['d_e']:.4f} m, IoU {s['iou']:.3f}, {s['points']:,} points"
+
+    print(f"{name}: mapsqueeze {line(ours)}; G-PCC {label}: {line(theirs)}")
 
 
 def main() -> None:
