@@ -181,9 +181,10 @@ def main() -> None:
                       "|---|---|---|---|---|---|---|"]
             for row in rows:
                 quality = (f"{row['ratio']:.3f}" if "ratio" in row else f"accuracy {row['accuracy']:.4f}")
+                error, constant = row.get("error", float("nan")), row.get("constant_error", float("nan"))
                 lines.append(f"| mapsqueeze | {row['attribute']} | voxel {row['voxel_m']:g} m, step 1/"
-                             f"{round(1 / row['step'])} | {row['attribute_bpp']:.3f} | {row.get('error', float('nan')):.4f} | "
-                             f"{row.get('constant_error', float('nan')):.4f} | {quality} |")
+                             f"{round(1 / row['step'])} | {row['attribute_bpp']:.3f} | {error:.4f} | "
+                             f"{constant:.4f} | {quality} |")
             for kind, gpcc_rows in results["gpcc"][cloud_name].items():
                 for row in gpcc_rows:
                     lines.append(f"| G-PCC {kind} | {name} | qp {row['qp']} | {row['attribute_bpp']:.3f} | "

@@ -1,6 +1,7 @@
 """Point-cloud file I/O: the only place that knows file formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD,
-LAS/LAZ, .npy). Points are (N, 3) float64 metres with named per-point attributes and file metadata (`PointCloud`); `formats` holds the
-table of formats, one module per family (tables, ply, pcd, las) their layouts and precision."""
+LAS/LAZ, .npy). Points are (N, 3) float64 metres with named per-point attributes and file metadata
+(`PointCloud`); `formats` holds the table of formats, one module per family (tables, ply, pcd, las) their layouts
+and precision."""
 
 from mapsqueeze.io.atomic import atomic_output, atomic_write_bytes, check_output_path, work_dir
 from mapsqueeze.io.folders import is_point_cloud_path, point_cloud_files
