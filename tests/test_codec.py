@@ -233,7 +233,8 @@ def test_decoded_points_outside_a_tile_are_dropped_not_clamped_onto_its_faces(co
                 assert n_points is None  # the native output, cropped before resampling
                 return np.concatenate([inside, outside])
 
-        local = decompress_module.decode_tile(reader, position, GrownPastTheFaces(), 2000)
+        local = decompress_module.decode_payload(reader.header, entry, reader.payload(position),
+                                                 GrownPastTheFaces(), 2000, "tile")
     assert len(local) == 2000
     assert cKDTree(inside).query(local)[0].max() == 0  # every point is one grown inside, none clamped onto a face
 
@@ -265,19 +266,20 @@ def test_other_densities(compressed, model, map_points):
 
 def test_bbox_decodes_only_intersecting_tiles(compressed, model, monkeypatch):
     decoded_tiles = []
-    original = decompress_module.decode_tile
+    original = decompress_module.decode_payload
 
-    def spy(reader, position, *args):
-        decoded_tiles.append(position)
-        return original(reader, position, *args)
+    def spy(header, entry, *args):
+        decoded_tiles.append(entry.index)
+        return original(header, entry, *args)
 
-    monkeypatch.setattr(decompress_module, "decode_tile", spy)
+    monkeypatch.setattr(decompress_module, "decode_payload", spy)
     box = np.concatenate([UTM + [1.0, 1.0, 0.0], UTM + [6.0, 6.0, 3.0]])  # inside the first tile column
-    points = mapsqueeze.decompress(compressed, model=model, bbox=box)
+    points = mapsqueeze.decompress(compressed, model=model, bbox=box, workers=1)  # the spy sees this process only
     reader, stream = open_container(compressed)
     stream.close()
     boxes = [decompress_module.tile_world_bounds(reader.header, entry) for entry in reader.entries]
-    expected = [p for p, tile_box in enumerate(boxes) if decompress_module._intersects(tile_box, box.reshape(2, 3))]
+    expected = [entry.index for entry, tile_box in zip(reader.entries, boxes)
+                if decompress_module._intersects(tile_box, box.reshape(2, 3))]
     assert decoded_tiles == expected and 0 < len(expected) < len(reader.entries)
     assert len(points) > 0 and (points >= box[:3]).all() and (points <= box[3:]).all()
 
@@ -462,7 +464,7 @@ def test_decompress_file_refuses_an_unknown_output_format_before_decoding(compre
     from mapsqueeze.errors import PointCloudFormatError
 
     (tmp_path / "map.msq").write_bytes(compressed)
-    monkeypatch.setattr(decompress_module, "decode_tile", lambda *a: pytest.fail("decoded before the check"))
+    monkeypatch.setattr(decompress_module, "decode_payload", lambda *a: pytest.fail("decoded before the check"))
     with pytest.raises(PointCloudFormatError, match="unknown point-cloud extension"):
         mapsqueeze.decompress_file(tmp_path / "map.msq", tmp_path / "out.xyz")
     assert not (tmp_path / "out.xyz").exists()

@@ -60,7 +60,8 @@ def _model(model):
 def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision = DEFAULT_PRECISION, *,
              refine_steps: int = 0, progress: ProgressCallback | None = None, keep_zero_points: bool = False,
              attributes: dict[str, np.ndarray] | None = None, metadata: dict | None = None,
-             attribute_options: AttributeOptions = AttributeOptions()) -> bytes:
+             attribute_options: AttributeOptions = AttributeOptions(),
+             workers: int | None = None, dask_scheduler: str | None = None) -> bytes:
     """(N, 3) float64 map points (metres, e.g. UTM) -> .msq bytes.
 
     model: shipped name (e0..e3), model directory or loaded CompressionModel. precision: f32, f16 or q.
@@ -69,7 +70,8 @@ def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision
     Points at exactly (0, 0, 0), which sensors write for "no return", are left out (with their attributes) unless
     keep_zero_points. attributes: name -> (N,) values, coded per tile as chosen by attribute_options (which, voxel
     edge, step); metadata: JSON-serialisable file metadata (e.g. `PointCloud.metadata` of a LAS file) stored in the
-    file.
+    file. workers: processes encoding tiles in parallel (None: one per core); dask_scheduler: run the tiles on a
+    Dask cluster at this address instead ("local": a LocalCluster of `workers` processes). The bytes are the same.
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     if not keep_zero_points:
@@ -80,22 +82,25 @@ def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision
             nonzero = points.any(axis=1)
             points, attributes = kept, {name: values[nonzero] for name, values in attributes.items()}
     return compress_map(points, _model(model), precision, progress=progress, refine_steps=refine_steps,
-                        attributes=attributes, metadata=metadata, attribute_options=attribute_options)
+                        attributes=attributes, metadata=metadata, attribute_options=attribute_options,
+                        workers=workers, dask_scheduler=dask_scheduler)
 
 
 def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
                density: float | None = None, n_points: int | None = None,
                progress: ProgressCallback | None = None,
-               max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> np.ndarray:
+               max_tile_points: int = DEFAULT_MAX_TILE_POINTS, workers: int | None = None,
+               dask_scheduler: str | None = None) -> np.ndarray:
     """.msq bytes (or a .msq file path) -> (K, 3) float64 world points.
 
     By default every tile gets back its original point count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
     tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
     choose another density. model defaults to the shipped model named in the file; its weights must match the
     file's. A tile asked for more than max_tile_points points raises DecodeLimitError (a crafted file may claim
-    millions of points in a few bytes).
+    millions of points in a few bytes). workers / dask_scheduler: where tiles are decoded, as in `compress`.
     """
-    tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress, max_tile_points))
+    tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress, max_tile_points,
+                                    workers=workers, dask_scheduler=dask_scheduler))
     return np.concatenate(tiles) if tiles else np.zeros((0, 3), dtype=np.float64)
 
 
@@ -215,14 +220,16 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
                   precision: str | Precision = DEFAULT_PRECISION, *, refine_steps: int = 0,
                   progress: ProgressCallback | None = None, keep_zero_points: bool = False,
                   format: str | None = None,
-                  attribute_options: AttributeOptions = AttributeOptions()) -> ContainerInfo:
+                  attribute_options: AttributeOptions = AttributeOptions(), workers: int | None = None,
+                  dask_scheduler: str | None = None) -> ContainerInfo:
     """Read a point-cloud file in chunks, compress it, write the .msq atomically; returns the written file's summary
     (with `zero_points_dropped`, the points at exactly (0, 0, 0) left out unless keep_zero_points).
 
     format: the input's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension). The output
     path is checked before any work. Memory is bounded by a chunk of the input and one tile (see `compress_chunks`),
     not by the map's size; the bytes are those `compress` gives for the file's points, attributes and metadata
-    (`read_point_cloud`), coded as attribute_options says.
+    (`read_point_cloud`), coded as attribute_options says; workers / dask_scheduler as in `compress` (one tile in
+    memory per worker).
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     format_name(input_path, format)
@@ -248,7 +255,7 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
                                          "'no return' values); keep them with --keep-zero-points")
 
     data = compress_chunks(chunks, model, precision, progress=progress, refine_steps=refine_steps,
-                           attribute_options=attribute_options)
+                           attribute_options=attribute_options, workers=workers, dask_scheduler=dask_scheduler)
     atomic_write_bytes(output_path, data)
     return dataclasses.replace(info(data), zero_points_dropped=dropped[0])
 
@@ -256,7 +263,8 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
 def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, *, model=None,
                     bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
                     progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None,
-                    max_tile_points: int = DEFAULT_MAX_TILE_POINTS, format: str | None = None) -> int:
+                    max_tile_points: int = DEFAULT_MAX_TILE_POINTS, format: str | None = None,
+                    workers: int | None = None, dask_scheduler: str | None = None) -> int:
     """Decode a .msq file (seeking to the tiles needed) and write the points, their attributes and the file's
     metadata atomically; returns the count.
 
@@ -264,7 +272,8 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
 
     Tiles are decoded one at a time into spill files (in spill_dir, default the system's temporary directory;
     24 bytes a point plus the attributes), which are then written out chunk by chunk: memory stays bounded by a
-    tile and a chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`).
+    tile and a chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`); workers / dask_scheduler as
+    in `compress` (one tile in memory per worker).
     """
     format_name(output_path, format)  # an unknown output format or an unwritable path fails before any decoding
     check_output_path(output_path)
@@ -276,7 +285,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
         try:
             with open(spill_path, "wb") as stream:
                 for tile in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress,
-                                                max_tile_points):
+                                                max_tile_points, workers=workers, dask_scheduler=dask_scheduler):
                     stream.write(np.ascontiguousarray(tile.points, dtype="<f8").tobytes())
                     for spec, column in zip(specs, streams):
                         column.write(np.ascontiguousarray(tile.attributes[spec.name], dtype=spec.dtype).tobytes())

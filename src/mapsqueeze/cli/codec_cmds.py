@@ -40,6 +40,17 @@ def _tile_progress(description: str) -> Iterator:
             bar.stop()
 
 
+def _workers_option() -> typer.models.OptionInfo:
+    return typer.Option(None, "--workers", min=1, metavar="N",
+                        help="processes coding tiles in parallel (default: one per core); the bytes are the same")
+
+
+def _dask_option() -> typer.models.OptionInfo:
+    return typer.Option(None, "--dask-scheduler", metavar="ADDRESS",
+                        help="code the tiles on the Dask cluster at ADDRESS ('local': start one of --workers "
+                             "processes); needs the dask extra: pip install 'mapsqueeze\\[dask]'")
+
+
 @app.command("compress")
 def compress_command(
     map_path: Path = typer.Argument(..., metavar="MAP", help="point-cloud map (.ply .pcd .las .laz .bin .npy)"),
@@ -61,6 +72,8 @@ def compress_command(
     attribute_step: float = typer.Option(DEFAULT_RELATIVE_STEP, "--attribute-step", metavar="FRACTION",
                                          help="quantisation step of continuous attributes (intensity, colour, time) "
                                               "as a fraction of each one's range"),
+    workers: int | None = _workers_option(),
+    dask_scheduler: str | None = _dask_option(),
 ) -> None:
     """Compress a map: 40 x 40 x 15 m tiles, each encoded by the network (sparse tiles near-exactly); attributes
     (intensity, colour, labels, ...) on a voxel grid per tile; the LAS header's metadata (CRS) is kept."""
@@ -68,7 +81,7 @@ def compress_command(
     with _tile_progress("compressing") as progress:
         summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, progress=progress,
                                     keep_zero_points=keep_zero_points, format=in_format,
-                                    attribute_options=options)
+                                    attribute_options=options, workers=workers, dask_scheduler=dask_scheduler)
     console = make_console()
     if summary.zero_points_dropped:
         console.print(f"left out {summary.zero_points_dropped:,} points at exactly (0, 0, 0) (sensor 'no return' "
@@ -98,13 +111,16 @@ def decompress_command(
                                         max=MAX_POINTS_PER_TILE,
                                         help="refuse to decode more points than this in one tile (a guard "
                                              "against crafted files)"),
+    workers: int | None = _workers_option(),
+    dask_scheduler: str | None = _dask_option(),
 ) -> None:
     """Decompress a .msq file to a point cloud."""
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
     warn_dropped(api.info(msq).attributes, output, out_format)
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
-                                    progress=progress, max_tile_points=max_tile_points, format=out_format)
+                                    progress=progress, max_tile_points=max_tile_points, format=out_format,
+                                    workers=workers, dask_scheduler=dask_scheduler)
     make_console().print(f"wrote {count:,} points to {output}")
 
 

@@ -36,6 +36,7 @@ from mapsqueeze.codec.embedding import (
     encode_float,
     quantise,
 )
+from mapsqueeze.codec.executor import open_executor
 from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
@@ -118,14 +119,17 @@ def compress_map(
     attributes: dict[str, np.ndarray] | None = None,
     metadata: dict | None = None,
     attribute_options: AttributeOptions = AttributeOptions(),
+    workers: int | None = 1,
+    dask_scheduler: str | None = None,
 ) -> bytes:
     """Compress an (N, 3) float64 map (metres, any coordinate frame) with a loaded CompressionModel.
 
     position_step_m / feature_step_std set the q quantiser (default DEFAULT_POSITION_STEP_RS x r_s and
     DEFAULT_FEATURE_STEP_STD). refine_steps > 0 refines each network tile's embedding at encode time
-    (`CompressionModel.refine`: slower encoding, lower D_e, same format). Tiles are encoded one at a time; only their
-    compact embeddings and payloads are kept until the file is assembled (q fits its histograms over all tiles
-    before coding them). Deterministic: the same points, model and settings give the same bytes.
+    (`CompressionModel.refine`: slower encoding, lower D_e, same format). Tiles are encoded by `workers` processes
+    (None: one per core) or on the Dask cluster at `dask_scheduler` ("local" starts one; `codec.executor`); only
+    their compact embeddings and payloads are kept until the file is assembled (q fits its histograms over all tiles
+    before coding them). Deterministic: the same points, model and settings give the same bytes, whatever runs them.
     attributes (name -> (N,) values) selected by attribute_options are coded per tile after the geometry, and
     metadata (JSON-serialisable, e.g. the LAS header's) is stored; with neither the file is geometry-only.
     """
@@ -140,7 +144,7 @@ def compress_map(
     tile_points = ((tile.index, points[tile.point_indices],
                     {name: attributes[name][tile.point_indices] for name in coded}) for tile in tiles)
     return _compress_tiles(tile_points, len(tiles), len(points), origin, model, precision, position_step_m,
-                           feature_step_std, progress, refine_steps, schema)
+                           feature_step_std, progress, refine_steps, schema, workers, dask_scheduler)
 
 
 def compress_chunks(
@@ -153,6 +157,8 @@ def compress_chunks(
     spill_dir: str | os.PathLike | None = None,
     refine_steps: int = 0,
     attribute_options: AttributeOptions = AttributeOptions(),
+    workers: int | None = 1,
+    dask_scheduler: str | None = None,
 ) -> bytes:
     """compress_map for a map read in chunks (e.g. `mapsqueeze.io.iter_points`): memory bounded by one chunk and
     one tile, whatever the map's size. Gives the same bytes as compress_map on the concatenated chunks.
@@ -161,7 +167,7 @@ def compress_chunks(
     same chunks ((n, 3) float64 arrays, or PointClouds whose attributes and the first one's metadata are coded as
     compress_map's) in the same order. Pass 2 appends every tile's points (and attributes) to spill files in a
     temporary directory (in spill_dir, default the system's; 24 bytes a point plus the attributes), then encodes the
-    tiles one by one.
+    tiles back one by one and hands them to the encoding workers (memory: one tile per worker).
     """
     check_refine_steps(refine_steps)
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
@@ -201,7 +207,7 @@ def compress_chunks(
                          for column, (name, dtype) in enumerate(coded)})
                        for index in indices)
         return _compress_tiles(tile_points, len(indices), n_points, origin, model, precision, position_step_m,
-                               feature_step_std, progress, refine_steps, schema)
+                               feature_step_std, progress, refine_steps, schema, workers, dask_scheduler)
 
 
 def _as_cloud(chunk) -> PointCloud:
@@ -242,20 +248,22 @@ def _compress_tiles(
     progress: ProgressCallback | None,
     refine_steps: int,
     schema: AttributeSchema | None = None,
+    workers: int | None = 1,
+    dask_scheduler: str | None = None,
 ) -> bytes:
     """Encode (tile index, its float64 world points, its attributes) triples, given in tile order, and assemble
     the container (with an attribute section when `schema` is given)."""
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     encoded = []
-    for done, (index, points, attributes) in enumerate(tile_points, start=1):
-        tile = _encode_tile(index, origin + np.asarray(index) * tile_size, points, tile_size, model, refine_steps)
-        if schema is not None and schema.specs:
-            local = to_local(points, frame_origin(origin + np.asarray(index) * tile_size, tile.bounds_lo, tile_size),
-                             tile_size)
-            tile.attributes = encode_tile_attributes(local, attributes, schema, tile_size)
-        encoded.append(tile)
-        if progress:
-            progress(done, n_tiles)
+    job = _TileJob(model, origin, tile_size, refine_steps, schema)
+    executor = open_executor(workers, dask_scheduler, job, n_tiles)
+    try:
+        for done, tile in enumerate(executor.map(_encode_job, job, tile_points), start=1):
+            encoded.append(tile)
+            if progress:
+                progress(done, n_tiles)
+    finally:
+        executor.close()
     n_features = int(model.config.embedding_dim)
     quant_model = None
     if precision is Precision.q:
@@ -279,6 +287,29 @@ def _compress_tiles(
     )
     section = None if schema is None else AttributeSection(schema, [tile.attributes for tile in encoded if schema.specs])
     return serialise_container(header, [tile.record() for tile in encoded], section)
+
+
+@dataclass(frozen=True)
+class _TileJob:
+    """What every tile's encoding shares (sent once to each worker)."""
+
+    model: object
+    origin: np.ndarray  # float64 world corner of the tile grid (metres)
+    tile_size: np.ndarray
+    refine_steps: int
+    schema: AttributeSchema | None
+
+
+def _encode_job(job: _TileJob, item: tuple[tuple[int, int, int], np.ndarray, dict]) -> _EncodedTile:
+    """One tile's job: (tile index, its float64 world points, its attributes) -> its embedding, raw candidate and
+    coded attributes."""
+    index, points, attributes = item
+    tile_origin = job.origin + np.asarray(index) * job.tile_size
+    tile = _encode_tile(index, tile_origin, points, job.tile_size, job.model, job.refine_steps)
+    if job.schema is not None and job.schema.specs:
+        local = to_local(points, frame_origin(tile_origin, tile.bounds_lo, job.tile_size), job.tile_size)
+        tile.attributes = encode_tile_attributes(local, attributes, job.schema, job.tile_size)
+    return tile
 
 
 def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_points: np.ndarray,

@@ -20,6 +20,7 @@ from mapsqueeze.codec.container import (
     open_container,
 )
 from mapsqueeze.codec.embedding import Precision, decode_float, dequantise
+from mapsqueeze.codec.executor import open_executor
 from mapsqueeze.codec.rawtile import decode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.geometry.resample import resample_to_count
@@ -128,15 +129,13 @@ def decode_embedding(reader: ContainerReader, position: int) -> tuple[np.ndarray
         raise _undecodable(label, exc) from None
 
 
-def decode_tile(reader: ContainerReader, position: int, model, count: int) -> np.ndarray:
-    """Tile `position` decoded to `count` float32 points relative to `tile_frame`, all inside the tile's bounds.
+def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, count: int, label: str) -> np.ndarray:
+    """A tile's payload bytes decoded to `count` float32 points relative to `tile_frame`, all inside the tile's
+    bounds.
 
     The network grows surfaces past the tile's bounds box; those points are dropped (the neighbouring tile codes
     that space) and the count is restored from the points inside (`keep_inside`), so tile faces show no seams.
     """
-    header, entry = reader.header, reader.entries[position]
-    label = f"{reader.name}: {entry.label(position)}"
-    payload = reader.payload(position)
     tile_size = np.asarray(header.tile_size)
     try:
         if entry.coding is TileCoding.raw:
@@ -170,6 +169,8 @@ def iter_decoded_tiles(
     n_points: int | None = None,
     progress: ProgressCallback | None = None,
     max_tile_points: int = DEFAULT_MAX_TILE_POINTS,
+    workers: int | None = 1,
+    dask_scheduler: str | None = None,
 ) -> Iterator[np.ndarray]:
     """Decode a .msq buffer or file tile by tile: yields each tile's (k, 3) float64 world points, in file order
     (tiles left empty by the counts or the bbox crop are skipped). Memory: one tile.
@@ -177,9 +178,11 @@ def iter_decoded_tiles(
     model: a CompressionModel, a name or path (default: the model id stored in the file); its weights must match
     the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
     read and decoded, and the output is cropped to it. density / n_points / max_tile_points: see `target_counts`.
+    Payloads are read here and decoded by `workers` processes (None: one per core) or on the Dask cluster at
+    `dask_scheduler` (`codec.executor`); the points are the same whatever runs them.
     """
     for cloud in iter_decoded_clouds(source, model, bbox, density, n_points, progress, max_tile_points,
-                                     attributes=False):
+                                     attributes=False, workers=workers, dask_scheduler=dask_scheduler):
         yield cloud.points
 
 
@@ -192,6 +195,8 @@ def iter_decoded_clouds(
     progress: ProgressCallback | None = None,
     max_tile_points: int = DEFAULT_MAX_TILE_POINTS,
     attributes: bool = True,
+    workers: int | None = 1,
+    dask_scheduler: str | None = None,
 ) -> Iterator[PointCloud]:
     """As `iter_decoded_tiles`, yielding each tile as a PointCloud: its world points, the attributes coded in the
     file (each decoded point takes its nearest attribute voxel's values; none with attributes=False) and the
@@ -207,22 +212,39 @@ def iter_decoded_clouds(
             model = _load_matching_model(model, header, reader.name)
         schema = reader.attribute_schema
         metadata = schema.metadata if schema else {}
-        for done, (position, count) in enumerate(zip(selected, counts), start=1):
-            if count:
-                local = decode_tile(reader, position, model, count)
-                values = {}
-                if attributes and reader.attribute_entries:
-                    values = decode_tile_attributes(reader.attribute_stream(position), local, schema,
-                                                    np.asarray(header.tile_size),
-                                                    f"{reader.name}: {reader.entries[position].label(position)}")
-                world = tile_frame(header, reader.entries[position]) + local
-                if box is not None:
-                    inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
-                    world, values = world[inside], {name: v[inside] for name, v in values.items()}
-                if len(world):
-                    yield PointCloud(world, values, metadata)
-            if progress:
-                progress(done, len(selected))
+        jobs = [(position, count) for position, count in zip(selected, counts) if count]
+        payloads = ((reader.entries[position], reader.payload(position), count,
+                     f"{reader.name}: {reader.entries[position].label(position)}") for position, count in jobs)
+        context = (header, model)
+        executor = open_executor(workers, dask_scheduler, context, len(jobs))
+        try:
+            decoded = executor.map(_decode_job, context, payloads)
+            for done, (position, count) in enumerate(zip(selected, counts), start=1):
+                if count:
+                    local = next(decoded)
+                    values = {}
+                    if attributes and reader.attribute_entries:
+                        values = decode_tile_attributes(reader.attribute_stream(position), local, schema,
+                                                        np.asarray(header.tile_size),
+                                                        f"{reader.name}: {reader.entries[position].label(position)}")
+                    world = tile_frame(header, reader.entries[position]) + local
+                    if box is not None:
+                        inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
+                        world, values = world[inside], {name: v[inside] for name, v in values.items()}
+                    if len(world):
+                        yield PointCloud(world, values, metadata)
+                if progress:
+                    progress(done, len(selected))
+        finally:
+            executor.close()
+
+
+def _decode_job(context: tuple[Header, object], item: tuple[TileEntry, bytes, int, str]) -> np.ndarray:
+    """One tile's job: (table entry, payload bytes, point count, label) -> float32 points (`decode_payload`);
+    context: the container's header and the model."""
+    header, model = context
+    entry, payload, count, label = item
+    return decode_payload(header, entry, payload, model, count, label)
 
 
 def _intersects(a: np.ndarray, b: np.ndarray) -> bool:

@@ -1,0 +1,6 @@
+"""`python -m mapsqueeze ...` (e.g. under `torchrun`): the command-line interface."""
+
+from mapsqueeze.cli import main
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""Where per-tile jobs run: in this process, in local worker processes, or on a Dask cluster, behind one interface.
+
+Every executor maps a module-level `function(context, item)` over items and yields the results in input order,
+with at most a few items per worker submitted ahead of the one being yielded (memory: one tile per worker plus the
+results waiting for their turn). `context` (e.g. the model) is sent to each worker once. Each worker runs torch
+on its share of the cores; results do not depend on where a job ran, so every executor gives the same bytes.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+from mapsqueeze.errors import MapsqueezeError
+
+TileFunction = Callable[[Any, Any], Any]
+
+IN_FLIGHT_PER_WORKER = 2
+"""Jobs submitted per worker ahead of the oldest unfinished one (keeps workers busy while results are collected)."""
+
+DASK_RETRIES = 3
+"""A Dask job whose worker dies is run again on another worker this many times before the whole run fails."""
+
+
+def default_workers() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def check_workers(workers: int) -> int:
+    """MapsqueezeError unless workers is an integer >= 1."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise MapsqueezeError(f"workers must be an integer of at least 1, got {workers!r}")
+    return workers
+
+
+class SerialExecutor:
+    """Runs each job in this process, one after the other."""
+
+    workers = 1
+
+    def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
+        return (function(context, item) for item in items)
+
+    def close(self) -> None:
+        pass
+
+
+class ProcessExecutor:
+    """A pool of `workers` local processes (forkserver: safe whatever threads this process runs), each started
+    with the context and torch limited to its share of the cores."""
+
+    def __init__(self, workers: int, context: Any):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = workers
+        start = multiprocessing.get_context("forkserver")
+        start.set_forkserver_preload(["mapsqueeze.codec.compress", "mapsqueeze.codec.decompress", "mapsqueeze.model"])
+        self._pool = ProcessPoolExecutor(workers, mp_context=start, initializer=_install_context,
+                                         initargs=(context, _threads_per_worker(workers)))
+
+    def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
+        return _ordered(lambda item: self._pool.submit(_run_installed, function, item), items,
+                        IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskExecutor:
+    """Jobs on a Dask distributed cluster at `address` ("local": a LocalCluster of `workers` single-threaded
+    processes started here and stopped on close). A job whose worker fails is retried on another (DASK_RETRIES)."""
+
+    def __init__(self, address: str, workers: int):
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise MapsqueezeError('--dask-scheduler needs Dask: pip install "mapsqueeze[dask]"') from None
+        self._cluster = None
+        if address == "local":
+            self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                         dashboard_address=None)
+            self._client = Client(self._cluster)
+        else:
+            try:
+                self._client = Client(address, timeout="30s")
+            except (OSError, ValueError) as exc:
+                raise MapsqueezeError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
+        self.workers = max(1, len(self._client.scheduler_info().get("workers", {})) or workers)
+
+    def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
+        shared = self._client.scatter(context, broadcast=True, hash=False)
+        threads = _threads_per_worker(self.workers) if self._cluster is not None else None  # remote: their own
+        return _ordered(lambda item: self._client.submit(_run_with_context, function, shared, item, threads,
+                                                         pure=False, retries=DASK_RETRIES), items,
+                        IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
+
+    def close(self) -> None:
+        self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+Executor = SerialExecutor | ProcessExecutor | DaskExecutor
+
+
+def open_executor(workers: int | None, dask_scheduler: str | None, context: Any, n_jobs: int) -> Executor:
+    """The executor for a run of n_jobs tile jobs: Dask when a scheduler address is given, a process pool for
+    several workers and jobs, else this process. workers None: one per core."""
+    workers = default_workers() if workers is None else check_workers(workers)
+    if dask_scheduler:
+        return DaskExecutor(dask_scheduler, workers)
+    if workers > 1 and n_jobs > 1:
+        return ProcessExecutor(min(workers, n_jobs), context)
+    return SerialExecutor()
+
+
+def _ordered(submit: Callable[[Any], Any], items: Iterable, in_flight: int, result: Callable[[Any], Any]) -> Iterator:
+    """Submit items, keeping at most in_flight pending, and yield their results in input order."""
+    pending: deque = deque()
+    try:
+        for item in items:
+            pending.append(submit(item))
+            if len(pending) >= in_flight:
+                yield result(pending.popleft())
+        while pending:
+            yield result(pending.popleft())
+    finally:
+        for future in pending:
+            future.cancel()
+
+
+def _threads_per_worker(workers: int) -> int:
+    return max(1, default_workers() // workers)
+
+
+_context: Any = None
+
+
+def _install_context(context: Any, threads: int) -> None:
+    """Worker-process initialiser: keep the context for every job and limit torch's threads."""
+    global _context
+    import torch
+
+    torch.set_num_threads(threads)
+    _context = context
+
+
+def _run_installed(function: TileFunction, item: Any) -> Any:
+    return function(_context, item)
+
+
+def _run_with_context(function: TileFunction, context: Any, item: Any, threads: int | None) -> Any:
+    if threads is not None:
+        import torch
+
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+    return function(context, item)

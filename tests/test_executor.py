@@ -1,0 +1,103 @@
+"""Tile jobs in worker processes and on a Dask cluster give the bytes and points of the serial run."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mapsqueeze
+from mapsqueeze.codec import executor as executor_module
+from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.io import read_points, write_points
+from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
+
+UTM = np.array([500_000.123, 4_000_000.456, 50.0])
+TILE = (8.0, 8.0, 4.0)
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    config = ModelConfig.for_rate("e1", tile_size=TILE, map_size=8.0, max_input_points=2000)
+    return save_model(build_model(config, seed=3), tmp_path_factory.mktemp("model") / "tiny")
+
+
+@pytest.fixture(scope="module")
+def model(model_dir):
+    return load_model(model_dir)
+
+
+@pytest.fixture(scope="module")
+def map_points():
+    """A 20 x 14 m ground and a wall at UTM coordinates: 6 occupied tiles of 8 x 8 x 4 m."""
+    rng = np.random.default_rng(7)
+    ground = np.column_stack([rng.uniform(0, 20, 6000), rng.uniform(0, 14, 6000), rng.normal(0.5, 0.03, 6000)])
+    wall = np.column_stack([rng.uniform(2, 18, 2000), rng.normal(10.0, 0.02, 2000), rng.uniform(0.5, 6.0, 2000)])
+    return np.concatenate([ground, wall]) + UTM
+
+
+@pytest.fixture(scope="module")
+def serial(map_points, model):
+    data = mapsqueeze.compress(map_points, model=model, workers=1)
+    return data, mapsqueeze.decompress(data, model=model, workers=1)
+
+
+def test_worker_processes_give_the_serial_bytes_and_points(model, map_points, serial):
+    data = mapsqueeze.compress(map_points, model=model, workers=3)
+    assert data == serial[0]
+    assert np.array_equal(mapsqueeze.decompress(data, model=model, workers=3), serial[1])
+
+
+def test_file_to_file_with_workers_gives_the_serial_files(map_points, model_dir, serial, tmp_path):
+    source = tmp_path / "map.ply"
+    write_points(source, map_points)
+    mapsqueeze.compress_file(source, tmp_path / "two.msq", model=model_dir, workers=2)
+    assert (tmp_path / "two.msq").read_bytes() == serial[0]
+    mapsqueeze.decompress_file(tmp_path / "two.msq", tmp_path / "two.npy", model=model_dir, workers=2)
+    assert np.array_equal(read_points(tmp_path / "two.npy"), serial[1])
+
+
+def test_dask_cluster_gives_the_serial_bytes_and_points(map_points, model, serial):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        data = mapsqueeze.compress(map_points, model=model, dask_scheduler=cluster.scheduler_address)
+        assert data == serial[0]
+        decoded = mapsqueeze.decompress(data, model=model, dask_scheduler=cluster.scheduler_address)
+    assert np.array_equal(decoded, serial[1])
+
+
+def test_results_come_in_input_order_with_a_bounded_number_in_flight():
+    pending, most = [], 0
+
+    class Job:
+        def __init__(self, item):
+            self.item = item
+
+        def cancel(self):
+            pass
+
+    def submit(item):
+        nonlocal most
+        pending.append(item)
+        most = max(most, len(pending))
+        return Job(item)
+
+    def result(job):
+        pending.remove(job.item)
+        return job.item * 10
+
+    assert list(executor_module._ordered(submit, range(20), 4, result)) == [i * 10 for i in range(20)]
+    assert most == 4
+
+
+@pytest.mark.parametrize("bad", [0, -1, True, 2.5])
+def test_bad_worker_counts_are_refused(map_points, model, bad):
+    with pytest.raises(MapsqueezeError, match="workers"):
+        mapsqueeze.compress(map_points, model=model, workers=bad)
+
+
+def test_cli_refuses_zero_workers(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "mapsqueeze", "compress", str(tmp_path / "map.ply"), "-o",
+                           str(tmp_path / "map.msq"), "--workers", "0"], capture_output=True, text=True)
+    assert done.returncode == 2 and done.stderr.startswith("error:") and "Traceback" not in done.stderr
