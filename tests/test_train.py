@@ -1,14 +1,19 @@
-"""Training runs a new user starts: no validation submaps, a time budget, the files written."""
+"""Training runs a new user starts: no validation submaps, a time budget, the files written; two DDP processes."""
 
+import csv
 import json
 import stat
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 
 from mapsqueeze.data.mapping import Submap, write_dataset
-from mapsqueeze.train import TrainConfig, one_cycle, retime_one_cycle, steps_within
+from mapsqueeze.io import write_points
+from mapsqueeze.model import load_network
+from mapsqueeze.train import TrainConfig, one_cycle, retime_one_cycle, steps_within, weights_digest
 
 
 @pytest.fixture
@@ -54,3 +59,39 @@ def test_one_cycle_is_retimed_to_the_steps_that_fit():
     assert steps_within(1.0, 9.0, 3, 3.0) == 20
     assert max(rates) > 0.9 * cfg.max_lr  # near the peak within the budget (unretimed: 2e-6 after 20 steps)
     assert rates[-1] < 1.1 * cfg.end_lr  # and the cycle ends at its final rate
+
+
+def _tiny_dataset(folder):
+    """Four 12 x 12 m clouds of 1,500 points (a ground and a wall): a plain folder, every file in every split."""
+    folder.mkdir()
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        ground = np.column_stack([rng.uniform(0, 12, 1000), rng.uniform(0, 12, 1000), rng.normal(0.3, 0.02, 1000)])
+        wall = np.column_stack([rng.uniform(0, 12, 500), rng.normal(6.0, 0.02, 500), rng.uniform(0.3, 3.0, 500)])
+        write_points(folder / f"cloud{seed}.ply", np.concatenate([ground, wall]))
+    return folder
+
+
+def _train_two_processes(dataset, out, *options):
+    command = [sys.executable, "-m", "mapsqueeze", "train", str(dataset), "-o", str(out), "--rate", "e1",
+               "--epochs", "2", "--batch-size", "1", "--val-limit", "1", "--nproc", "2", *options]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    with open(out / "log.csv") as log:
+        rows = list(csv.DictReader(log))
+    return json.loads((out / "summary.json").read_text()), rows
+
+
+def test_two_gloo_processes_hold_identical_weights_write_once_and_resume(tmp_path):
+    dataset, out = _tiny_dataset(tmp_path / "data"), tmp_path / "run"
+    summary, rows = _train_two_processes(dataset, out, "--max-steps", "2")  # stops after the first of two epochs
+    saved = weights_digest(load_network(out / "last")[0])
+    assert summary["processes"] == 2 and summary["steps"] == 2  # 4 clouds / (2 processes x batch 1)
+    assert summary["process_weights_sha256"] == [saved, saved]
+    assert [row["epoch"] for row in rows] == ["1"]  # one process logs
+    assert sorted(p.name for p in out.iterdir()) == ["best", "last", "log.csv", "summary.json"]
+
+    summary, rows = _train_two_processes(dataset, out, "--max-steps", "4")  # resumes with the second epoch
+    resumed = weights_digest(load_network(out / "last")[0])
+    assert summary["steps"] == 4 and [row["epoch"] for row in rows] == ["1", "2"]
+    assert summary["process_weights_sha256"] == [resumed, resumed] and resumed != saved

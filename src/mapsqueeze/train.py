@@ -1,11 +1,19 @@
 """Training loop of the autoencoder (paper Sec. IV-A): Adam + one-cycle cosine schedule, batch by gradient
-accumulation, validation each epoch with the best checkpoint kept, resumable, CSV log, rich progress."""
+accumulation, validation each epoch with the best checkpoint kept, resumable, CSV log, rich progress.
+
+Distributed data parallel: run under `torchrun --nproc-per-node N -m mapsqueeze train ...` (or `train --nproc N`,
+`train_processes`): every process trains on its share of each epoch's submaps (gloo on CPU, nccl on GPUs), the
+gradients are averaged, and process 0 alone validates and writes the checkpoints, the log and the summary.
+"""
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
+import os
+import socket
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -140,6 +148,93 @@ def init_from(network: Autoencoder, source_dir: Path) -> int:
     return len(matched)
 
 
+def weights_digest(network: torch.nn.Module) -> str:
+    """SHA-256 of every parameter and buffer (state_dict order): equal digests, identical weights."""
+    digest = hashlib.sha256()
+    for name, tensor in network.state_dict().items():
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class _Process:
+    """This process's place in a distributed run (rank 0 of 1 when not distributed)."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def writer(self) -> bool:
+        return self.rank == 0
+
+
+def _join_process_group(device: str) -> tuple[_Process, torch.device]:
+    """Join the process group torchrun (or train_processes) describes in RANK / WORLD_SIZE / LOCAL_RANK, if any:
+    nccl with one GPU per process for cuda, gloo otherwise. Returns this process's place and device."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return _Process(), torch.device(device)
+    import torch.distributed as dist
+
+    process = _Process(int(os.environ["RANK"]), world, int(os.environ.get("LOCAL_RANK", "0")))
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        dev = torch.device("cuda", process.local_rank)
+        torch.cuda.set_device(dev)
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    return process, dev
+
+
+def _all_ranks(process: _Process, flag: bool, device: torch.device) -> bool:
+    """True on every process when it is true on any (a stop decision all processes take together)."""
+    if process.world == 1:
+        return flag
+    import torch.distributed as dist
+
+    value = torch.tensor([int(flag)], device=device)
+    dist.all_reduce(value, op=dist.ReduceOp.MAX)
+    return bool(value.item())
+
+
+def _smallest(process: _Process, value: int, device: torch.device) -> int:
+    """The smallest of every process's value (a step budget all processes agree on)."""
+    if process.world == 1:
+        return value
+    import torch.distributed as dist
+
+    tensor = torch.tensor([int(value)], device=device)
+    dist.all_reduce(tensor, op=dist.ReduceOp.MIN)
+    return int(tensor.item())
+
+
+def _average_buffers(process: _Process, network: torch.nn.Module) -> None:
+    """Average the floating-point buffers (batch-norm running statistics, which each process updates from its own
+    submaps) over the processes, so that all of them hold, and process 0 saves, the same model."""
+    if process.world == 1:
+        return
+    import torch.distributed as dist
+
+    for buffer in network.buffers():
+        if buffer.is_floating_point():
+            dist.all_reduce(buffer.data, op=dist.ReduceOp.SUM)
+            buffer.data /= process.world
+
+
+def _rank_digests(process: _Process, network: torch.nn.Module) -> list[str]:
+    """Every process's weights_digest, gathered on all of them."""
+    digest = weights_digest(network)
+    if process.world == 1:
+        return [digest]
+    import torch.distributed as dist
+
+    digests: list = [None] * process.world
+    dist.all_gather_object(digests, digest)
+    return digests
+
+
 def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainConfig, device: str = "cpu",
           resume: bool = True, init: Path | None = None, progress=None) -> dict:
     """Train and keep `out_dir/best` (lowest validation Chamfer; lowest training Chamfer when the dataset has no
@@ -147,11 +242,25 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
     cfg.epochs, or cfg.max_steps, or (cfg.max_minutes) the steps that fit in the time budget at the speed of the
     first STEPS_BEFORE_RETIMING steps, whichever is fewest.
 
-    Returns a summary dict (also written to out_dir/summary.json).
+    Returns a summary dict (also written to out_dir/summary.json). Under torchrun (WORLD_SIZE > 1) each of the N
+    processes takes every N-th submap of an epoch's order and makes cfg.batch_size passes per step, so a step
+    averages the gradients of N x batch_size submaps; process 0 alone validates and writes; the summary lists
+    every process's weights digest (`weights_digest`, identical by construction and checked).
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    dev = torch.device(device)
+    process, dev = _join_process_group(device)
+    try:
+        return _train(dataset, Path(out_dir), model_config, cfg, dev, resume, init, progress, process)
+    finally:
+        if process.world > 1:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainConfig, dev: torch.device,
+           resume: bool, init: Path | None, progress, process: _Process) -> dict:
+    if process.writer:
+        out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     train_set = load_samples(dataset, ("train",))
     val_set = load_samples(dataset, ("val",))[: cfg.val_limit]
@@ -161,7 +270,7 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
     if init is not None:
         init_from(network, init)
     optimizer = torch.optim.Adam(network.parameters(), lr=cfg.max_lr)
-    steps_per_epoch = max(1, len(train_set) // cfg.batch_size)
+    steps_per_epoch = max(1, len(train_set) // (cfg.batch_size * process.world))
     scheduler = one_cycle(optimizer, cfg.epochs * steps_per_epoch, cfg)
     state_path = out_dir / "last" / "train_state.pt"
     start_epoch, step, best = 0, 0, math.inf
@@ -174,12 +283,12 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         start_epoch, step, best = int(state["epoch"]), int(state["step"]), float(state["best"])
-    log_path = out_dir / "log.csv"
-    new_log = not log_path.is_file()
-    log = open(log_path, "a", newline="")
-    writer = csv.writer(log)
-    if new_log:
-        writer.writerow(["epoch", "step", "lr", "train_loss", "train_chamfer_m2", "val_chamfer_m2", "seconds"])
+    model = network
+    if process.world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        model = DistributedDataParallel(network, device_ids=[dev.index] if dev.type == "cuda" else None)
+    log, writer = _open_log(out_dir / "log.csv") if process.writer else (None, None)
     scale = model_config.map_size
     t0 = time.time()
     first_step, planned_steps = step, cfg.epochs * steps_per_epoch
@@ -190,7 +299,9 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
     network.train()
     for epoch in range(start_epoch, cfg.epochs):
         rng = np.random.default_rng([cfg.seed, epoch])
-        order = rng.permutation(len(train_set))[: steps_per_epoch * cfg.batch_size]
+        order = rng.permutation(len(train_set))[: steps_per_epoch * cfg.batch_size * process.world]
+        if process.world > 1:  # this process's share, with its own augmentation draws
+            order, rng = order[process.rank::process.world], np.random.default_rng([cfg.seed, epoch, process.rank])
         losses, chamfers = [], []
         optimizer.zero_grad()
         for i, idx in enumerate(order):
@@ -198,12 +309,14 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
             if cfg.augment:
                 pts = augment_points(pts, rng, scale)
             pts = torch.from_numpy(select_points(pts, cfg.max_points, rng) / scale).to(dev)
-            output, intermediate, _ = network(pts)
-            loss, main = depoco_loss(pts, output, intermediate, cfg.beta)
-            (loss / cfg.batch_size).backward()
+            last_pass = i % cfg.batch_size == cfg.batch_size - 1
+            with _gradient_sync(model, last_pass):  # DDP averages the gradients once per step
+                output, intermediate, _ = model(pts)
+                loss, main = depoco_loss(pts, output, intermediate, cfg.beta)
+                (loss / cfg.batch_size).backward()
             losses.append(loss.item())
             chamfers.append(main.item() * scale**2)
-            if i % cfg.batch_size == cfg.batch_size - 1:
+            if last_pass:
                 optimizer.step()
                 optimizer.zero_grad()
                 scheduler.step()
@@ -211,34 +324,90 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
                 if cfg.max_minutes and step - first_step == STEPS_BEFORE_RETIMING:  # fit the cycle to the time
                     elapsed = time.time() - t0
                     budget = steps_within(cfg.max_minutes, elapsed, step, elapsed / STEPS_BEFORE_RETIMING)
-                    retime_one_cycle(scheduler, min(planned_steps, budget), cfg)
-                if progress is not None:
+                    retime_one_cycle(scheduler, _smallest(process, min(planned_steps, budget), dev), cfg)
+                if progress is not None and process.writer:
                     progress(epoch, step, float(np.mean(losses[-cfg.batch_size:])))
-                if (cfg.max_steps and step >= cfg.max_steps) or (
-                        cfg.max_minutes and time.time() - t0 > 60 * cfg.max_minutes):
+                if _all_ranks(process, bool((cfg.max_steps and step >= cfg.max_steps) or (
+                        cfg.max_minutes and time.time() - t0 > 60 * cfg.max_minutes)), dev):
                     stop = True
                     break
-        # Without validation submaps the training Chamfer picks best/, and is named as such everywhere.
-        val = validate(network, val_set, dev) if val_set else float(np.mean(chamfers))
-        writer.writerow([epoch + 1, step, f"{scheduler.get_last_lr()[0]:.3e}", f"{np.mean(losses):.6f}",
-                         f"{np.mean(chamfers):.6f}", f"{val:.6f}" if val_set else "", f"{time.time() - t0:.1f}"])
-        log.flush()
-        if val < best:
-            best = val
-            network.config.extra = {**network.config.extra, "epochs": epoch + 1, "steps": step,
-                                    "val_chamfer_m2" if val_set else "train_chamfer_m2": val,
-                                    "dataset": str(dataset), "beta": cfg.beta}
-            save_model(network, out_dir / "best")
-        save_model(network, out_dir / "last")
-        torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch + 1,
-                    "step": step, "best": best}, state_path)
+        _average_buffers(process, network)
+        digests = _rank_digests(process, network)
+        if len(set(digests)) != 1:
+            raise ModelError(f"the training processes' weights differ after epoch {epoch + 1}: {digests}")
+        if process.writer:
+            # Without validation submaps the training Chamfer picks best/, and is named as such everywhere.
+            val = validate(network, val_set, dev) if val_set else float(np.mean(chamfers))
+            writer.writerow([epoch + 1, step, f"{scheduler.get_last_lr()[0]:.3e}", f"{np.mean(losses):.6f}",
+                             f"{np.mean(chamfers):.6f}", f"{val:.6f}" if val_set else "", f"{time.time() - t0:.1f}"])
+            log.flush()
+            if val < best:
+                best = val
+                network.config.extra = {**network.config.extra, "epochs": epoch + 1, "steps": step,
+                                        "val_chamfer_m2" if val_set else "train_chamfer_m2": val,
+                                        "dataset": str(dataset), "beta": cfg.beta}
+                save_model(network, out_dir / "best")
+            save_model(network, out_dir / "last")
+            torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch + 1,
+                        "step": step, "best": best}, state_path)
         if stop:
             break
-    log.close()
     summary = {"best_val_chamfer_m2": best if val_set else None, "best_train_chamfer_m2": None if val_set else best,
                "steps": step, "planned_steps": scheduler.total_steps, "minutes": (time.time() - t0) / 60,
-               "train_config": asdict(cfg), "train_submaps": len(train_set), "val_submaps": len(val_set)}
+               "train_config": asdict(cfg), "train_submaps": len(train_set), "val_submaps": len(val_set),
+               "processes": process.world, "process_weights_sha256": _rank_digests(process, network)}
+    if not process.writer:
+        return summary
+    log.close()
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if not (out_dir / "best" / "model.safetensors").is_file():
         raise ModelError("training produced no checkpoint")
     return summary
+
+
+def _open_log(path: Path):
+    new_log = not path.is_file()
+    log = open(path, "a", newline="")
+    writer = csv.writer(log)
+    if new_log:
+        writer.writerow(["epoch", "step", "lr", "train_loss", "train_chamfer_m2", "val_chamfer_m2", "seconds"])
+    return log, writer
+
+
+def _gradient_sync(model: torch.nn.Module, sync: bool):
+    """DDP's no_sync() on the passes that only accumulate gradients; nothing to do otherwise."""
+    import contextlib
+
+    if sync or not hasattr(model, "no_sync"):
+        return contextlib.nullcontext()
+    return model.no_sync()
+
+
+def train_processes(nproc: int, dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainConfig,
+                    device: str = "cpu", resume: bool = True, init: Path | None = None) -> dict:
+    """`train` in nproc local processes (what `torchrun --nproc-per-node nproc` does), each with its share of
+    the cores; returns the summary process 0 wrote. MapsqueezeError when a process fails."""
+    import torch.multiprocessing as mp
+
+    if nproc < 1:
+        raise MapsqueezeError(f"--nproc must be at least 1, got {nproc}")
+    with socket.socket() as probe:  # a free port for the process group's rendezvous
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    try:
+        mp.spawn(_train_process, args=(nproc, port, dataset, out_dir, model_config, cfg, device, resume, init),
+                 nprocs=nproc, join=True)
+    except mp.ProcessRaisedException as exc:
+        last = str(exc).strip().splitlines()[-1]
+        raise MapsqueezeError(f"a training process failed: {last}") from None
+    except mp.ProcessExitedException as exc:
+        raise MapsqueezeError(f"a training process died: {exc}") from None
+    return json.loads((Path(out_dir) / "summary.json").read_text())
+
+
+def _train_process(rank: int, nproc: int, port: int, *args) -> None:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    torch.set_num_threads(max(1, cores // nproc))
+    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(nproc), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    train(*args)

@@ -11,7 +11,6 @@ from rich.table import Table
 from mapsqueeze.cli.app import app, make_console
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import read_points
-from mapsqueeze.metrics import EVALUATION_STAGES, IOU_VOXEL_M, Metrics, evaluate, overlap_warning
 
 
 def _compressed_size(n_bytes: int | None, compressed: Path | None) -> int | None:
@@ -26,7 +25,10 @@ def _compressed_size(n_bytes: int | None, compressed: Path | None) -> int | None
         raise MapsqueezeError(f"{compressed}: cannot read its size ({exc.strerror or exc})") from None
 
 
-def _table(metrics: Metrics) -> Table:
+def _table(metrics) -> Table:
+    """The rows of `mapsqueeze eval` for a mapsqueeze.metrics.Metrics."""
+    from mapsqueeze.metrics import IOU_VOXEL_M
+
     voxel_cm = " x ".join(f"{size * 100:g}" for size in IOU_VOXEL_M)
     table = Table("metric", "value", "unit")
     table.add_row("D_e", f"{metrics.d_e:.6f}", "m")
@@ -48,6 +50,8 @@ def eval_command(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
 ) -> None:
     """D_e, D_perp, IoU, Chamfer and bits per point of RECON against GT (the paper's Sec. IV-A metrics)."""
+    from mapsqueeze.metrics import EVALUATION_STAGES, evaluate, overlap_warning  # scipy: imported here
+
     size = _compressed_size(n_bytes, compressed)
     stages = ("reading", *EVALUATION_STAGES)
     console = make_console(stderr=True)

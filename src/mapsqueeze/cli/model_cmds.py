@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional
 
@@ -68,28 +69,39 @@ def train_cmd(
     seed: int = typer.Option(0),
     device: str = typer.Option("cpu", help="cpu or cuda"),
     no_resume: bool = typer.Option(False, "--no-resume", help="Start over even if out/last exists"),
+    nproc: int = typer.Option(1, "--nproc", min=1, help="Train in N processes (DistributedDataParallel: gloo on "
+                              "CPU, nccl with --device cuda, one GPU each); each step averages N x batch-size "
+                              "submaps. Same as torchrun --nproc-per-node N -m mapsqueeze train ..."),
 ):
     """Train the autoencoder of one rate point (Adam, one-cycle cosine lr, batch by gradient accumulation)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from mapsqueeze.model import ModelConfig
-    from mapsqueeze.train import TrainConfig, train
+    from mapsqueeze.train import TrainConfig, train, train_processes
 
     overrides = {k: v for k, v in (("density_a", density_a), ("density_b", density_b)) if v is not None}
     model_config = ModelConfig.for_rate(rate, **overrides)
     cfg = TrainConfig(epochs=epochs, batch_size=batch_size, max_lr=max_lr, beta=beta, max_steps=max_steps,
                       max_minutes=max_minutes, val_limit=val_limit, seed=seed)
-    with Progress(TextColumn("epoch {task.fields[epoch]} step {task.completed}"), BarColumn(),
-                  TextColumn("loss {task.fields[loss]:.5f}"), TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("train", total=max_steps, epoch=0, loss=float("nan"))
-        summary = train(dataset, out, model_config, cfg, device=device, resume=not no_resume, init=init,
-                        progress=lambda e, s, l: bar.update(task, completed=s, epoch=e + 1, loss=l))
+    if nproc > 1:  # progress: out/log.csv, one row per epoch
+        summary = train_processes(nproc, dataset, out, model_config, cfg, device=device, resume=not no_resume,
+                                  init=init)
+    else:
+        with Progress(TextColumn("epoch {task.fields[epoch]} step {task.completed}"), BarColumn(),
+                      TextColumn("loss {task.fields[loss]:.5f}"), TimeElapsedColumn(), console=console,
+                      disable=os.environ.get("RANK", "0") != "0") as bar:  # under torchrun: process 0 reports
+            task = bar.add_task("train", total=max_steps, epoch=0, loss=float("nan"))
+            summary = train(dataset, out, model_config, cfg, device=device, resume=not no_resume, init=init,
+                            progress=lambda e, s, l: bar.update(task, completed=s, epoch=e + 1, loss=l))
+    if os.environ.get("RANK", "0") != "0":
+        return
     if summary["best_val_chamfer_m2"] is None:
         best = (f"no validation submaps: best/ holds the lowest training Chamfer, "
                 f"{summary['best_train_chamfer_m2']:.5f} m^2,")
     else:
         best = f"best validation Chamfer {summary['best_val_chamfer_m2']:.5f} m^2"
-    console.print(f"{best} after {summary['steps']} steps ({summary['minutes']:.1f} min) -> {out / 'best'}")
+    console.print(f"{best} after {summary['steps']} steps ({summary['minutes']:.1f} min, {summary['processes']} "
+                  f"process(es)) -> {out / 'best'}")
 
 
 @app.command("models")

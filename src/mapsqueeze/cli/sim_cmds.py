@@ -7,7 +7,8 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from mapsqueeze.cli.app import app, make_console
-from mapsqueeze.data.simulator import PRESETS, SENSORS, SimulationConfig, simulate_dataset
+from mapsqueeze.data.simulator.presets import PRESETS
+from mapsqueeze.data.simulator.sensors import SENSORS
 from mapsqueeze.errors import SimulationError
 
 
@@ -50,6 +51,8 @@ def simulate(
     beam pattern while driving; each submap aggregates a random number of scans with the real pipeline (2-20 m
     range, 10 cm voxels, 40 x 40 x 15 m boxes every 15 m).
     """
+    from mapsqueeze.data.simulator.simulate import SimulationConfig, simulate_dataset  # trimesh: imported here
+
     if out_dir.exists() and not out_dir.is_dir():
         raise SimulationError(f"{out_dir}: exists and is not a directory")
     config = SimulationConfig(n_submaps=submaps, sensors=_names(sensor, "--sensor"),

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mapsqueeze.errors import DataError
 from mapsqueeze.geometry.tiling import TILE_SIZE_M, to_local
@@ -97,6 +96,8 @@ def submap_centers(poses: np.ndarray, spacing: float = SUBMAP_SPACING_M, rule: s
                 return np.array(keys, dtype=np.int64)
             keys.append(following)
     if rule == "coverage":
+        from scipy.spatial import cKDTree  # imported here: `mapsqueeze --help` stays fast
+
         tree = cKDTree(positions[:, :2])
         covered = np.zeros(len(positions), dtype=bool)
         keys = []

@@ -11,34 +11,21 @@ primitives), `buildings`, `objects` (vehicles, vegetation, fences, poles, clutte
 aggregation, datasets). See docs/simulator.md.
 """
 
-from mapsqueeze.data.simulator.presets import PRESETS, Preset, get_preset
-from mapsqueeze.data.simulator.raycast import Raycaster
-from mapsqueeze.data.simulator.scene import Scene, build_scene
-from mapsqueeze.data.simulator.sensors import SENSORS, SensorInstance, SensorModel, get_sensor
-from mapsqueeze.data.simulator.simulate import (
-    SceneResult,
-    SimulationConfig,
-    drive,
-    iter_scenes,
-    simulate_dataset,
-    simulate_scene,
-)
+import importlib
 
-__all__ = [
-    "PRESETS",
-    "SENSORS",
-    "Preset",
-    "Raycaster",
-    "Scene",
-    "SceneResult",
-    "SensorInstance",
-    "SensorModel",
-    "SimulationConfig",
-    "build_scene",
-    "drive",
-    "get_preset",
-    "get_sensor",
-    "iter_scenes",
-    "simulate_dataset",
-    "simulate_scene",
-]
+_EXPORTS = {
+    "presets": ("PRESETS", "Preset", "get_preset"),
+    "raycast": ("Raycaster",),
+    "scene": ("Scene", "build_scene"),
+    "sensors": ("SENSORS", "SensorInstance", "SensorModel", "get_sensor"),
+    "simulate": ("SceneResult", "SimulationConfig", "drive", "iter_scenes", "simulate_dataset", "simulate_scene"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_MODULE_OF)
+
+
+def __getattr__(name: str):
+    """Lazy re-exports: the command line lists the sensors and presets without importing trimesh and Embree."""
+    if name in _MODULE_OF:
+        return getattr(importlib.import_module(f"mapsqueeze.data.simulator.{_MODULE_OF[name]}"), name)
+    raise AttributeError(f"module 'mapsqueeze.data.simulator' has no attribute {name!r}")
