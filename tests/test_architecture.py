@@ -15,7 +15,7 @@ FLOORS = {
     "train": 6,
     "bench": 7, "benchmark": 7, "demo": 7, "view": 7,
     "cli": 8,
-    "__init__": 9,
+    "__init__": 9, "__main__": 9,
 }
 """The floor of every room (a top-level folder or module of src/mapsqueeze); docs/architecture.md explains them.
 A room may import rooms on lower floors only: never a room above it, nor another room on its own floor."""
