@@ -57,6 +57,7 @@ def test_file_to_file_with_workers_gives_the_serial_files(map_points, model_dir,
     assert np.array_equal(read_points(tmp_path / "two.npy"), serial[1])
 
 
+@pytest.mark.slow
 def test_dask_cluster_gives_the_serial_bytes_and_points(map_points, model, serial):
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,

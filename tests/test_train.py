@@ -82,6 +82,7 @@ def _train_two_processes(dataset, out, *options):
     return json.loads((out / "summary.json").read_text()), rows
 
 
+@pytest.mark.slow
 def test_two_gloo_processes_hold_identical_weights_write_once_and_resume(tmp_path):
     dataset, out = _tiny_dataset(tmp_path / "data"), tmp_path / "run"
     summary, rows = _train_two_processes(dataset, out, "--max-steps", "2")  # stops after the first of two epochs
