@@ -9,7 +9,8 @@ one worker per core); G-PCC is `tmc3` trisoup (10 cm cells, nodes of 2^3 cells, 
 `mapsqueeze.baselines.gpcc`) on the same points, quantised to 1 mm as the wrapper does. Every command runs in a
 fresh process tree pinned to the first CORES cores; each figure is the median of --repeats runs: wall seconds, CPU
 seconds of the whole process tree and its peak resident memory (the sum over the tree's processes, sampled every
-50 ms). The side-by-side run also checks that `--workers 1`, the default workers and `--dask-scheduler local` give
+50 ms: RSS, which counts the pages processes share, e.g. torch's libraries, once per process, and PSS, which
+splits them among the processes sharing them). The side-by-side run also checks that `--workers 1`, the default workers and `--dask-scheduler local` give
 byte-identical .msq files and decoded clouds. The machine is shared: the load average is printed with every row;
 CPU seconds are the steadier comparison.
 """
@@ -50,17 +51,18 @@ def measure(command: list[str], cores: int = CORES) -> dict:
     root = psutil.Popen(["/usr/bin/time", "-o", report.name, "-f", "%U %S %M", *command], stdout=subprocess.DEVNULL,
                         stderr=subprocess.PIPE, preexec_fn=lambda: os.sched_setaffinity(0, pinned))
     cpu: dict[int, float] = {}
-    peak = 0
+    peak = peak_proportional = 0
     while root.poll() is None:
-        rss = 0
+        rss = pss = 0
         for process in [root, *_children(root)]:
             try:
                 times = process.cpu_times()
                 cpu[process.pid] = times.user + times.system
-                rss += process.memory_info().rss
+                memory = process.memory_full_info()
+                rss, pss = rss + memory.rss, pss + memory.pss
             except psutil.Error:
                 pass
-        peak = max(peak, rss)
+        peak, peak_proportional = max(peak, rss), max(peak_proportional, pss)
         time.sleep(SAMPLE_S)
     wall = time.perf_counter() - start
     if root.returncode != 0:
@@ -68,7 +70,7 @@ def measure(command: list[str], cores: int = CORES) -> dict:
     user_s, system_s, max_rss_kb = Path(report.name).read_text().split()[-3:]
     os.unlink(report.name)
     return {"wall_s": wall, "cpu_s": max(float(user_s) + float(system_s), sum(cpu.values())),
-            "peak_rss_mb": max(peak / 2**20, int(max_rss_kb) / 1024)}
+            "peak_rss_mb": max(peak / 2**20, int(max_rss_kb) / 1024), "peak_pss_mb": peak_proportional / 2**20}
 
 
 def _children(process: psutil.Process) -> list:
