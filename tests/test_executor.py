@@ -61,7 +61,7 @@ def test_file_to_file_with_workers_gives_the_serial_files(map_points, model_dir,
 def test_dask_cluster_gives_the_serial_bytes_and_points(map_points, model, serial):
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         data = mapsqueeze.compress(map_points, model=model, dask_scheduler=cluster.scheduler_address)
         assert data == serial[0]
         decoded = mapsqueeze.decompress(data, model=model, dask_scheduler=cluster.scheduler_address)

@@ -82,7 +82,7 @@ class DaskExecutor:
         self._cluster = None
         if address == "local":
             self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                         dashboard_address=None)
+                                         dashboard_address=":0")
             self._client = Client(self._cluster)
         else:
             try:
