@@ -8,16 +8,21 @@ along the ground-truth normal (PCA over 50 cm, `geometry.normals`): for a ground
 for a reconstructed point the normal of its matched ground-truth point.
 """
 
+from __future__ import annotations
+
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.normals import normals_pca
 from mapsqueeze.geometry.validation import validate_points
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 from mapsqueeze.geometry.voxel import pack_indices, voxel_indices
 
 IOU_VOXEL_M = (0.2, 0.2, 0.1)
@@ -52,9 +57,16 @@ class _Matching:
     rec_to_gt_index: np.ndarray
 
 
+def _kdtree(points: np.ndarray) -> cKDTree:
+    """scipy's k-d tree of (N, 3) points (scipy is imported here: the command line starts without it)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points)
+
+
 def _match(gt: np.ndarray, rec: np.ndarray, gt_tree: cKDTree) -> _Matching:
     """One cKDTree per cloud, each queried once."""
-    gt_to_rec_distance, gt_to_rec_index = cKDTree(rec).query(gt, k=1, workers=-1)
+    gt_to_rec_distance, gt_to_rec_index = _kdtree(rec).query(gt, k=1, workers=-1)
     rec_to_gt_distance, rec_to_gt_index = gt_tree.query(rec, k=1, workers=-1)
     return _Matching(gt_to_rec_distance, gt_to_rec_index, rec_to_gt_distance, rec_to_gt_index)
 
@@ -96,19 +108,19 @@ def _checked_normals(gt_normals: np.ndarray | None, gt: np.ndarray, gt_tree: cKD
 def nearest_distances(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(N,) distance (metres) from each of `points` to its nearest neighbour in `reference` (the terms of D_e)."""
     points, reference = validate_points(points, "points"), validate_points(reference, "reference")
-    return cKDTree(reference).query(points, k=1, workers=-1)[0]
+    return _kdtree(reference).query(points, k=1, workers=-1)[0]
 
 
 def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
     """Chamfer distance D_CD (eq. 6-7) in square metres: symmetric mean squared nearest-neighbour distance."""
     a, b = validate_points(a, "a"), validate_points(b, "b")
-    return _chamfer(_match(a, b, cKDTree(a)))
+    return _chamfer(_match(a, b, _kdtree(a)))
 
 
 def d_euclidean(gt: np.ndarray, rec: np.ndarray) -> float:
     """D_e (eq. 9-10, d = ||x_i - x_j||_2) in metres: symmetric mean nearest-neighbour distance."""
     gt, rec = validate_points(gt, "gt"), validate_points(rec, "rec")
-    return _d_euclidean(_match(gt, rec, cKDTree(gt)))
+    return _d_euclidean(_match(gt, rec, _kdtree(gt)))
 
 
 def d_point_to_plane(gt: np.ndarray, rec: np.ndarray, gt_normals: np.ndarray | None = None) -> float:
@@ -117,7 +129,7 @@ def d_point_to_plane(gt: np.ndarray, rec: np.ndarray, gt_normals: np.ndarray | N
     `gt_normals`: (N_gt, 3) normals of `gt`, to reuse them; by default `normals_pca(gt)` (50 cm radius).
     """
     gt, rec = validate_points(gt, "gt"), validate_points(rec, "rec")
-    gt_tree = cKDTree(gt)
+    gt_tree = _kdtree(gt)
     normals = _checked_normals(gt_normals, gt, gt_tree)
     return _d_point_to_plane(gt, rec, normals, _match(gt, rec, gt_tree))
 
@@ -165,7 +177,7 @@ def evaluate(
     """
     report = progress or (lambda stage: None)
     gt, rec = validate_points(gt, "gt"), validate_points(rec, "rec")
-    gt_tree = cKDTree(gt)
+    gt_tree = _kdtree(gt)
     report(EVALUATION_STAGES[0])
     normals = _checked_normals(gt_normals, gt, gt_tree)
     report(EVALUATION_STAGES[1])

@@ -9,11 +9,17 @@ and solved with one batched `np.linalg.eigh`. Memory is about 16 bytes per neigh
 a map voxel-filtered at 10 cm as in the paper (~100 neighbours within 0.5 m), far more for an unfiltered cloud.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.geometry.validation import validate_points
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 NORMAL_RADIUS_M = 0.5
 """Neighbourhood radius of the paper's normals (50 cm)."""
@@ -39,7 +45,10 @@ def normals_pca(points: np.ndarray, radius: float = NORMAL_RADIUS_M, tree: cKDTr
     points = validate_points(points, "points")
     if not radius > 0:
         raise MapsqueezeError(f"normal radius must be positive (metres), got {radius!r}")
-    tree = cKDTree(points) if tree is None else tree
+    if tree is None:
+        from scipy.spatial import cKDTree  # imported here: the command line starts without scipy
+
+        tree = cKDTree(points)
     counts, sums, products = _neighbourhood_moments(points, tree, radius)
     isolated = np.flatnonzero(counts < MIN_NEIGHBOURHOOD)
     if len(isolated):
