@@ -48,6 +48,17 @@ def test_worker_processes_give_the_serial_bytes_and_points(model, map_points, se
     assert np.array_equal(mapsqueeze.decompress(data, model=model, workers=3), serial[1])
 
 
+def test_attributes_coded_by_worker_processes_give_the_serial_bytes_and_values(map_points, model):
+    from mapsqueeze.api import decompress_cloud
+
+    attributes = {"intensity": np.random.default_rng(1).uniform(0, 1, len(map_points)).astype(np.float32)}
+    data = mapsqueeze.compress(map_points, model=model, attributes=attributes, workers=1)
+    assert mapsqueeze.compress(map_points, model=model, attributes=attributes, workers=2) == data
+    serial, parallel = (decompress_cloud(data, model=model, workers=n) for n in (1, 2))
+    assert np.array_equal(serial.points, parallel.points)
+    assert np.array_equal(serial.attributes["intensity"], parallel.attributes["intensity"])
+
+
 def test_file_to_file_with_workers_gives_the_serial_files(map_points, model_dir, serial, tmp_path):
     source = tmp_path / "map.ply"
     write_points(source, map_points)

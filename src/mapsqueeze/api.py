@@ -106,9 +106,11 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
 
 def decompress_cloud(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
                      density: float | None = None, n_points: int | None = None,
-                     progress: ProgressCallback | None = None) -> PointCloud:
+                     progress: ProgressCallback | None = None, workers: int | None = None,
+                     dask_scheduler: str | None = None) -> PointCloud:
     """As `decompress`, with every attribute coded in the file (dtypes restored) and the file's metadata."""
-    tiles = list(iter_decoded_clouds(data, model, bbox, density, n_points, progress))
+    tiles = list(iter_decoded_clouds(data, model, bbox, density, n_points, progress, workers=workers,
+                                     dask_scheduler=dask_scheduler))
     if not tiles:
         return PointCloud(np.zeros((0, 3), dtype=np.float64))
     return PointCloud(np.concatenate([tile.points for tile in tiles]),
