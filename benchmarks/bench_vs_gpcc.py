@@ -10,9 +10,9 @@ one worker per core); G-PCC is `tmc3` trisoup (10 cm cells, nodes of 2^3 cells, 
 fresh process tree pinned to the first CORES cores; each figure is the median of --repeats runs: wall seconds, CPU
 seconds of the whole process tree and its peak resident memory (the sum over the tree's processes, sampled every
 50 ms: RSS, which counts the pages processes share, e.g. torch's libraries, once per process, and PSS, which
-splits them among the processes sharing them). The side-by-side run also checks that `--workers 1`, the default workers and `--dask-scheduler local` give
-byte-identical .msq files and decoded clouds. The machine is shared: the load average is printed with every row;
-CPU seconds are the steadier comparison.
+splits them among the processes sharing them). The side-by-side run also checks that `--workers 1`, the default
+workers and `--dask-scheduler local` give byte-identical .msq files and decoded clouds. The machine is shared:
+the load average is printed with every row; CPU seconds are the steadier comparison.
 """
 
 import argparse
