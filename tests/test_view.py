@@ -51,6 +51,22 @@ def compressed(map_points, model_dir):
     return mapsqueeze.compress(map_points, model=model_dir)
 
 
+def smooth_intensity(points: np.ndarray) -> np.ndarray:
+    """An intensity that varies smoothly over the map (about 0 to 350): decoded points near an original point should
+    get about its value."""
+    local = points - UTM
+    return (10.0 * local[:, 0] + 20.0 * local[:, 2]).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def intensity_files(tmp_path_factory, map_points, model_dir):
+    """map.ply (points with smooth_intensity) and map.msq, its compression with the intensity coded."""
+    folder = tmp_path_factory.mktemp("intensity")
+    write_points(folder / "map.ply", map_points, attributes={"intensity": smooth_intensity(map_points)})
+    mapsqueeze.compress_file(folder / "map.ply", folder / "map.msq", model=model_dir)
+    return folder / "map.ply", folder / "map.msq"
+
+
 def unpack(b64: str, count: int, width: int = 1) -> np.ndarray:
     values = np.frombuffer(base64.b64decode(b64), dtype="<u2").astype(np.float64)
     assert len(values) == count * width
@@ -119,6 +135,47 @@ def test_intensity_is_shown_when_the_decoded_map_has_it(compressed, map_points):
     assert cloud["name"] == "decoded" and cloud["error"] is None and scene["summary"]["dE"] is None
     expected = (drawn - drawn.min()) / (drawn.max() - drawn.min()) * 65535
     np.testing.assert_allclose(unpack(cloud["intensity"], 500), expected, atol=0.5)
+
+
+def test_page_shows_the_intensities_decoded_from_the_file(tmp_path, intensity_files, map_points, model_dir, run_cli):
+    """A .msq with intensity: the page's decoded cloud carries the file's decoded intensities, close to the original's
+    at nearby points, and the original cloud the original file's intensities."""
+    ply, msq = intensity_files
+    assert mapsqueeze.info(msq).attributes == ("intensity",)
+    code, out, err = run_cli("view", str(msq), "--original", str(ply), "-o", str(tmp_path / "v.html"),
+                             "--max-points", "3000", "--model", str(model_dir))
+    assert code == 0, err
+    scene = scene_of_page((tmp_path / "v.html").read_text())
+    low, size, centre = np.array(scene["box"]["low"]), np.array(scene["box"]["size"]), np.array(scene["centre"])
+    (lowest, highest), original_intensity = scene["intensityRange"], smooth_intensity(map_points)
+    clouds = {c["name"]: c for c in scene["clouds"]}
+    drawn = {}
+    for name, cloud in clouds.items():
+        world = centre + low + unpack(cloud["positions"], cloud["drawn"], 3) / 65535 * size
+        drawn[name] = world, lowest + unpack(cloud["intensity"], cloud["drawn"]) / 65535 * (highest - lowest)
+    step = (highest - lowest) / 65535
+    # the original's are the file's own
+    world, intensity = drawn["original"]
+    np.testing.assert_allclose(intensity, original_intensity[cKDTree(map_points).query(world)[1]], atol=step)
+    # the decoded ones are the file's decoded intensities, which match the original's at the nearest original point
+    decoded = mapsqueeze.decompress_cloud(msq, model=model_dir)
+    world, intensity = drawn["decoded"]
+    np.testing.assert_allclose(intensity, decoded.attributes["intensity"][cKDTree(decoded.points).query(world)[1]],
+                               atol=step + 1e-3)
+    error = np.abs(intensity - original_intensity[cKDTree(map_points).query(world)[1]]).mean()
+    constant_guess = np.abs(original_intensity - np.median(original_intensity)).mean()
+    assert error < 0.1 * constant_guess, (error, constant_guess)
+
+
+def test_geometry_only_file_offers_no_intensity_colouring(tmp_path, compressed, intensity_files, model_dir, run_cli):
+    """Without intensity in the .msq nothing is coloured by intensity, even when the original has it."""
+    ply, _ = intensity_files
+    (tmp_path / "map.msq").write_bytes(compressed)
+    code, out, err = run_cli("view", str(tmp_path / "map.msq"), "--original", str(ply), "--max-points", "500",
+                             "--model", str(model_dir))
+    assert code == 0, err
+    scene = scene_of_page((tmp_path / "map.html").read_text())
+    assert scene["intensityRange"] is None and [c["intensity"] for c in scene["clouds"]] == [None, None]
 
 
 def test_page_is_self_contained(compressed, map_points, model_dir):
@@ -224,15 +281,16 @@ def _ramp_positions(image: np.ndarray, tolerance: float = 10) -> np.ndarray:
     return t[index[distance <= tolerance]]
 
 
-def test_headless_chromium_draws_both_clouds_and_the_error_colours(tmp_path, compressed, map_points, model_dir):
+def test_headless_chromium_draws_both_clouds_and_the_error_colours(tmp_path, intensity_files, model_dir):
     """The page rendered by a real browser (WebGL through SwiftShader): in the side-by-side layout the original's
     colour fills the left pane and the decoded one's the right pane; coloured by error, the points span the ramp
-    and the colour bar shows it."""
+    and the colour bar shows it; coloured by intensity, the points are greys from dark to bright."""
     _require_chromium()
     from matplotlib.image import imread
 
+    ply, msq = intensity_files
     page = tmp_path / "view.html"
-    write_view(ViewInput("tiny", compressed, original=CloudInput(map_points), model=model_dir), page, 4000)
+    write_view(ViewInput("tiny", msq, original=load_cloud(ply), model=model_dir), page, 4000)
     clouds = imread(screenshot(page, tmp_path / "clouds.png", "color=cloud&layout=side&size=3", size=(1000, 600)))
     clouds = (clouds * 255).round().astype(np.uint8) if clouds.dtype != np.uint8 else clouds
     stage = clouds[: 600 - 80, : 1000 - PANEL_PX]  # above the legend
@@ -252,3 +310,11 @@ def test_headless_chromium_draws_both_clouds_and_the_error_colours(tmp_path, com
     assert _near(points_area, ORIGINAL_RGB, 12).sum() < 50
     bar = _ramp_positions(errors[600 - 80:, : 1000 - PANEL_PX], tolerance=4)  # the colour bar: the whole ramp
     assert np.histogram(bar, bins=10, range=(0, 1))[0].min() >= 14 * 30
+
+    shades = imread(screenshot(page, tmp_path / "intensity.png", "color=intensity&size=3", size=(1000, 600)))
+    shades = (shades * 255).round().astype(np.uint8) if shades.dtype != np.uint8 else shades
+    pixels = shades[30: 600 - 80, : 1000 - PANEL_PX, :3].reshape(-1, 3).astype(int)  # as for the errors
+    pixels = pixels[~_near(pixels, BACKGROUND_RGB, 2)]
+    grey = pixels.max(axis=1) - pixels.min(axis=1) <= 3  # RAMPS.intensity of viewer.js: dark grey to white
+    assert grey.sum() > 0.9 * len(pixels) > 2000
+    assert min((pixels[grey, 0] < 64).sum(), (pixels[grey, 0] > 128).sum()) > 1000  # low and high intensities

@@ -7,23 +7,17 @@ import os
 from pathlib import Path
 
 from mapsqueeze.view.page import render_page
-from mapsqueeze.view.scene import DEFAULT_MAX_POINTS, CloudInput, ViewInput, build_scene
+from mapsqueeze.view.scene import DEFAULT_MAX_POINTS, INTENSITY_ATTRIBUTES, CloudInput, ViewInput, build_scene
 
-__all__ = ["DEFAULT_MAX_POINTS", "CloudInput", "ViewInput", "build_scene", "load_cloud", "render_page",
-           "write_view"]
-
-
-INTENSITY_ATTRIBUTES = ("intensity", "reflectance")
-"""Attribute names read as the intensity (LAS, PLY, PCD; KITTI .bin calls it reflectance)."""
+__all__ = ["DEFAULT_MAX_POINTS", "INTENSITY_ATTRIBUTES", "CloudInput", "ViewInput", "build_scene", "load_cloud",
+           "render_page", "write_view"]
 
 
 def load_cloud(path: str | os.PathLike) -> CloudInput:
     """A point-cloud file's points and, when it stores them, intensities (any format `mapsqueeze.io` reads)."""
     from mapsqueeze.io import read_point_cloud
 
-    cloud = read_point_cloud(path)
-    intensity = next((cloud.attributes[name] for name in INTENSITY_ATTRIBUTES if name in cloud.attributes), None)
-    return CloudInput(cloud.points, None if intensity is None else intensity.astype(float))
+    return CloudInput.from_point_cloud(read_point_cloud(path))
 
 
 def write_view(view: ViewInput, output: str | os.PathLike, max_points: int = DEFAULT_MAX_POINTS) -> dict:

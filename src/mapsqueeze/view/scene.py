@@ -17,6 +17,7 @@ import numpy as np
 
 from mapsqueeze import api
 from mapsqueeze.geometry.morton import coarse_to_fine_subset
+from mapsqueeze.io import PointCloud
 from mapsqueeze.metrics import Metrics, evaluate, nearest_distances
 
 DEFAULT_MAX_POINTS = 500_000
@@ -26,6 +27,8 @@ HEIGHT_PERCENTILES = (1.0, 99.0)
 """The height colour ramp spans these percentiles of the drawn heights (outliers saturate)."""
 ERROR_PERCENTILE = 95.0
 """The error colour bar starts at this percentile of the drawn errors (adjustable in the page)."""
+INTENSITY_ATTRIBUTES = ("intensity", "reflectance")
+"""Attribute names read as the intensity (LAS, PLY, PCD; KITTI .bin calls it reflectance)."""
 
 
 @dataclass
@@ -35,6 +38,12 @@ class CloudInput:
     points: np.ndarray
     intensity: np.ndarray | None = None
 
+    @classmethod
+    def from_point_cloud(cls, cloud: PointCloud) -> CloudInput:
+        """A PointCloud's points and its first attribute named in INTENSITY_ATTRIBUTES (as float64), if any."""
+        intensity = next((cloud.attributes[name] for name in INTENSITY_ATTRIBUTES if name in cloud.attributes), None)
+        return cls(cloud.points, None if intensity is None else np.asarray(intensity, dtype=np.float64))
+
 
 @dataclass
 class ViewInput:
@@ -43,7 +52,7 @@ class ViewInput:
     name: str
     msq: bytes | str | os.PathLike
     original: CloudInput | None = None
-    decoded: CloudInput | None = None  # default: api.decompress(msq) at the stored counts
+    decoded: CloudInput | None = None  # default: api.decompress_cloud(msq) at the stored counts, with its intensity
     metrics: Metrics | None = None  # default: evaluate(original, decoded) when the original is given
     model: object = None  # decoding model (default: the one named in the file)
 
@@ -64,15 +73,16 @@ def _metric_or_none(metrics: Metrics | None, name: str) -> float | None:
 def build_scene(view: ViewInput, max_points: int = DEFAULT_MAX_POINTS) -> dict:
     """The page's data (a JSON-serialisable dict) of a .msq file, its decoded map and optionally its original.
 
-    Each cloud keeps `coarse_to_fine_subset(points, max_points)`: an evenly spread subset whose every prefix is
-    evenly spread too, so the page draws a prefix while the camera moves. Errors are each drawn point's distance to
-    the nearest point of the whole other cloud (metres).
+    The decoded map's intensities are those coded in the file (none for a geometry-only file); intensity colouring
+    is offered only when the decoded map has them. Each cloud keeps `coarse_to_fine_subset(points, max_points)`: an
+    evenly spread subset whose every prefix is evenly spread too, so the page draws a prefix while the camera moves.
+    Errors are each drawn point's distance to the nearest point of the whole other cloud (metres).
     """
     if max_points < 1:
         raise ValueError(f"max_points must be at least 1, got {max_points}")
     summary = api.info(view.msq)
     tile_list = api.tiles(view.msq)
-    decoded = view.decoded or CloudInput(api.decompress(view.msq, model=view.model))
+    decoded = view.decoded or CloudInput.from_point_cloud(api.decompress_cloud(view.msq, model=view.model))
     metrics = view.metrics
     if metrics is None and view.original is not None:
         metrics = evaluate(view.original.points, decoded.points, n_bytes=summary.file_bytes)
