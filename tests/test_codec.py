@@ -4,6 +4,7 @@ A small randomly initialised model (8 x 8 x 4 m tiles, r_s = 2 m) saved to a tmp
 codec does not care whether the weights are trained.
 """
 
+import struct
 import sys
 import zlib
 
@@ -35,6 +36,7 @@ from mapsqueeze.codec.entropy import (
     decode_gaps,
     encode_gaps,
 )
+from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.io import read_point_cloud, read_points, write_points
@@ -73,6 +75,12 @@ def map_points():
 @pytest.fixture(scope="module")
 def compressed(map_points, model):
     return mapsqueeze.compress(map_points, model=model, precision="q")
+
+
+@pytest.fixture(scope="module")
+def network_only(map_points, model):
+    """Without the octree fallback, which beats the untrained network on every tile."""
+    return mapsqueeze.compress(map_points, model=model, precision="q", fallback=False)
 
 
 def read_all_payloads(data: bytes) -> None:
@@ -200,26 +208,29 @@ def test_raw_tile_is_near_exact():
 
 # --- whole maps ------------------------------------------------------------------------------------------------
 
-def test_round_trip_of_a_multi_tile_map(map_points, compressed, model):
-    reader, stream = open_container(compressed)
+@pytest.mark.parametrize("fallback", [True, False])
+def test_round_trip_of_a_multi_tile_map(map_points, compressed, network_only, model, fallback):
+    data = compressed if fallback else network_only
+    reader, stream = open_container(data)
     stream.close()
     assert len(reader.entries) >= 6
     assert any(e.coding is TileCoding.raw for e in reader.entries)  # the 4-point post: raw (<= 4 points a centre)
-    assert any(e.coding is TileCoding.network for e in reader.entries)
-    decoded = mapsqueeze.decompress(compressed, model=model)
+    assert any(e.coding is (TileCoding.octree if fallback else TileCoding.network) for e in reader.entries)
+    assert fallback or not any(e.coding is TileCoding.octree for e in reader.entries)
+    decoded = mapsqueeze.decompress(data, model=model)
     assert decoded.dtype == np.float64 and np.isfinite(decoded).all()
-    assert abs(len(decoded) - len(map_points)) <= 0.1 * len(map_points)
+    assert len(mapsqueeze.decompress(data, model=model, n_points=len(map_points))) == len(map_points)
     # Decoded points stay inside the boxes of their tiles' input points.
     low, high = map_points.min(axis=0), map_points.max(axis=0)
     assert (decoded >= low - 1e-3).all() and (decoded <= high + 1e-3).all()
-    info = mapsqueeze.info(compressed)
-    assert info.n_points == len(map_points) and info.file_bytes == len(compressed)
+    info = mapsqueeze.info(data)
+    assert info.n_points == len(map_points) and info.file_bytes == len(data)
     assert info.bits_per_point < 2.0
 
 
-def test_decoded_points_outside_a_tile_are_dropped_not_clamped_onto_its_faces(compressed, model):
+def test_decoded_points_outside_a_tile_are_dropped_not_clamped_onto_its_faces(network_only, model):
     """The network grows surfaces past a tile's box: those points go, the count comes from the ones inside."""
-    reader, stream = open_container(compressed)
+    reader, stream = open_container(network_only)
     with stream:
         position = next(p for p, e in enumerate(reader.entries) if e.coding is TileCoding.network)
         entry = reader.entries[position]
@@ -249,9 +260,9 @@ def test_a_map_no_larger_than_a_tile_is_one_tile_wherever_it_lies(model):
 
 @pytest.mark.parametrize("precision", ["f32", "f16"])
 def test_float_precisions_round_trip(map_points, model, precision):
-    data = mapsqueeze.compress(map_points, model=model, precision=precision)
+    data = mapsqueeze.compress(map_points, model=model, precision=precision, fallback=False)
     assert mapsqueeze.info(data).precision == precision
-    assert len(mapsqueeze.decompress(data, model=model)) == len(map_points)
+    assert len(mapsqueeze.decompress(data, model=model, n_points=len(map_points))) == len(map_points)
 
 
 def test_other_densities(compressed, model, map_points):
@@ -288,15 +299,16 @@ def test_identical_bytes_on_repeated_runs(map_points, compressed, model_dir):
     assert mapsqueeze.compress(map_points, model=load_model(model_dir), precision="q") == compressed
 
 
-def test_refined_encoding_keeps_the_format_and_is_deterministic(map_points, compressed, model, tmp_path):
-    refined = mapsqueeze.compress(map_points, model=model, precision="q", refine_steps=3)
-    assert refined != compressed and mapsqueeze.compress(map_points, model=model, refine_steps=3) == refined
-    plain_info, refined_info = mapsqueeze.info(compressed), mapsqueeze.info(refined)
-    assert (refined_info.n_tiles, refined_info.n_raw_tiles) == (plain_info.n_tiles, plain_info.n_raw_tiles)
-    decoded = mapsqueeze.decompress(refined, model=model)
+def test_refined_encoding_keeps_the_format_and_is_deterministic(map_points, network_only, model, tmp_path):
+    refined = mapsqueeze.compress(map_points, model=model, precision="q", refine_steps=3, fallback=False)
+    assert refined != network_only
+    assert mapsqueeze.compress(map_points, model=model, refine_steps=3, fallback=False) == refined
+    plain_info, refined_info = mapsqueeze.info(network_only), mapsqueeze.info(refined)
+    assert (refined_info.n_tiles, refined_info.tile_modes) == (plain_info.n_tiles, plain_info.tile_modes)
+    decoded = mapsqueeze.decompress(refined, model=model, n_points=len(map_points))
     assert len(decoded) == len(map_points)
     write_points(tmp_path / "map.npy", map_points)
-    mapsqueeze.compress_file(tmp_path / "map.npy", tmp_path / "map.msq", model=model, refine_steps=3)
+    mapsqueeze.compress_file(tmp_path / "map.npy", tmp_path / "map.msq", model=model, refine_steps=3, fallback=False)
     assert (tmp_path / "map.msq").read_bytes() == refined
     for bad in (-1, 1.5, True, 10**6):
         with pytest.raises(MapsqueezeError, match="refinement steps"):
@@ -366,11 +378,81 @@ def test_empty_map_is_refused_and_one_point_map_gives_a_tiny_file(model):
     np.testing.assert_allclose(mapsqueeze.decompress(data), UTM[None, :], atol=RAW_STEP_M)
 
 
-def test_wrong_model_is_refused(compressed, tmp_path):
+def test_wrong_model_is_refused(network_only, tmp_path):
     other = save_model(build_model(ModelConfig.for_rate("e1", tile_size=tuple(TILE), map_size=8.0), seed=2),
                        tmp_path / "other")
     with pytest.raises(ModelError, match="compressed with model"):
-        mapsqueeze.decompress(compressed, model=other)
+        mapsqueeze.decompress(network_only, model=other)
+
+
+# --- per-tile modes, rate control, default count, version 1 files ----------------------------------------------
+
+def test_mode_rules_pick_the_cheapest_within_budget():
+    from mapsqueeze.codec.modes import Candidate, choose, choose_for_error, choose_for_rate
+
+    def candidate(n_bytes, d_e):
+        return Candidate(TileCoding.octree, b"", n_bytes, d_e, f"{n_bytes}")
+
+    network = Candidate(TileCoding.network, b"", 100, 0.20, "network")
+    tile = [network, candidate(90, 0.15), candidate(150, 0.05), candidate(40, 0.40)]
+    assert choose(tile, 100).label == "90"  # lowest D_e at no more bytes than the network's
+    assert choose_for_error(tile, 0.16).label == "90" and choose_for_error(tile, 0.01).label == "150"
+    dense = [Candidate(TileCoding.network, b"", 100, 0.05, "network"), candidate(400, 0.04), candidate(30, 0.5)]
+    choice = choose_for_rate([tile, dense], [1000, 5000], budget_bytes=150)
+    assert sum(c.n_bytes for c in choice) <= 150 and choice[1].label == "network"
+    assert [c.label for c in choose_for_rate([tile, dense], [1000, 5000], 10)] == ["40", "30"]  # nothing fits
+
+
+def test_rate_targets_are_met(map_points, model):
+    loose = mapsqueeze.compress(map_points, model=model, max_error=10.0)
+    tight = mapsqueeze.compress(map_points, model=model, max_error=0.01)
+    assert len(loose) < len(tight)
+    assert set(mapsqueeze.info(tight).tile_modes) == {"raw"}  # only raw coding (1 cm steps) reaches 1 cm
+    decoded = mapsqueeze.decompress(tight, model=model)
+    assert cKDTree(decoded).query(map_points)[0].max() <= np.sqrt(3) * RAW_STEP_M / 2 + 1e-6
+    smallest = 8 * len(mapsqueeze.compress(map_points, model=model, bpp=1e-6)) / len(map_points)  # nothing fits
+    sizes = []
+    for bpp in (1.5 * smallest, 3 * smallest):
+        sizes.append(len(mapsqueeze.compress(map_points, model=model, bpp=bpp)))
+        assert smallest < 8 * sizes[-1] / len(map_points) <= bpp
+    assert sizes[0] < sizes[1]
+    with pytest.raises(MapsqueezeError, match="not both"):
+        mapsqueeze.compress(map_points, model=model, max_error=0.1, bpp=1.0)
+
+
+def test_default_decode_is_each_tiles_native_count(network_only, model):
+    reader, stream = open_container(network_only)
+    with stream:
+        assert reader.version == 2 and reader.header.default_count.name == "native"
+        native = sum(len(decompress_module.decode_payload(reader.header, entry, reader.payload(position), model, None,
+                                                          entry.label(position)))
+                     for position, entry in enumerate(reader.entries))
+    decoded = mapsqueeze.decompress(network_only, model=model)
+    assert len(decoded) == native > reader.header.n_points
+    assert mapsqueeze.info(network_only).default_count == "native"
+    with pytest.raises(DecodeLimitError, match="native count"):  # the limit holds for native counts too
+        mapsqueeze.decompress(network_only, model=model, max_tile_points=max(e.n_points for e in reader.entries))
+
+
+def as_version_1(data: bytes) -> bytes:
+    """The same file in the version 1 layout: no default-count byte in the header (the input count by default)."""
+    body_length = struct.unpack_from("<I", data, 8)[0]
+    body = data[12:12 + body_length]
+    count_at = 1 + body[0] + 32 + struct.calcsize("<Bd3d3dQIBd")
+    body = body[:count_at] + body[count_at + 1:]
+    head = struct.pack("<4sHHI", b"MSQZ", 1, 0, len(body)) + body
+    return head + struct.pack("<I", zlib.crc32(head)) + data[12 + body_length + 4:]
+
+
+def test_version_1_files_decode_to_the_input_count(network_only, map_points, model):
+    old = as_version_1(network_only)
+    reader, stream = open_container(old)
+    stream.close()
+    assert reader.version == 1 and reader.header.default_count.name == "input"
+    decoded = mapsqueeze.decompress(old, model=model)
+    assert len(decoded) == len(map_points)
+    np.testing.assert_array_equal(decoded, mapsqueeze.decompress(network_only, model=model,
+                                                                  n_points=len(map_points)))
 
 
 # --- corruption ----------------------------------------------------------------------------------------------
@@ -402,15 +484,25 @@ def test_corrupt_tile_is_named_by_decompress(compressed, model):
         mapsqueeze.decompress(b"PK\x03\x04" + bytes(compressed[4:]), model=model)
 
 
-def test_payload_checks_catch_forged_crcs(compressed):
+def test_payload_checks_catch_forged_crcs(network_only, compressed):
     """A payload rewritten with a matching CRC but garbage content still gives ContainerError, not garbage."""
-    reader, stream = open_container(compressed)
+    reader, stream = open_container(network_only)
     stream.close()
     position = next(p for p, e in enumerate(reader.entries) if e.coding is TileCoding.network)
     entry = reader.entries[position]
     with pytest.raises(ContainerError, match=f"tile {position}"):
         reader.header.quant_model.decode(b"\x07" + b"\xff" * (entry.length - 1), entry.n_points, f"tile {position}")
-    assert zlib.crc32(compressed[entry.offset:entry.offset + entry.length]) == entry.crc32
+    assert zlib.crc32(network_only[entry.offset:entry.offset + entry.length]) == entry.crc32
+    reader, stream = open_container(compressed)
+    with stream:
+        position = next(p for p, e in enumerate(reader.entries) if e.coding is TileCoding.octree)
+        entry, tile_size = reader.entries[position], np.asarray(reader.header.tile_size)
+        payload = bytearray(reader.payload(position))
+    for forged in (payload[:5] + b"\xff" * (len(payload) - 5),  # garbage levels
+                   struct.pack("<fB", 1e-9, 20) + payload[5:],  # absurd leaf
+                   payload[:5] + b"\x80" * 12):  # malformed leaf count
+        with pytest.raises(ContainerError, match=f"tile {position}"):
+            decode_octree_tile(bytes(forged), tile_size, entry.n_points, f"tile {position}")
 
 
 # --- command line ----------------------------------------------------------------------------------------------
@@ -432,7 +524,7 @@ def test_cli_round_trip_and_errors(tmp_path, map_points, model_dir, monkeypatch,
     code, _ = run_cli(monkeypatch, capsys, "compress", source, "-o", msq, "--model", model_dir)
     assert code in (0, None) and msq.is_file()
     code, captured = run_cli(monkeypatch, capsys, "info", msq)
-    assert code in (0, None) and "bits per point" in captured.out
+    assert code in (0, None) and "bits per point" in captured.out and "octree" in captured.out
     box = ",".join(str(v) for v in np.concatenate([UTM, UTM + [7.0, 7.0, 3.0]]))
     code, _ = run_cli(monkeypatch, capsys, "decompress", msq, "-o", out, "--model", model_dir, f"--bbox={box}")
     assert code in (0, None) and len(read_points(out)) > 0
@@ -442,6 +534,9 @@ def test_cli_round_trip_and_errors(tmp_path, map_points, model_dir, monkeypatch,
                  ["decompress", msq, "-o", out, "--bbox", "1,2,3"],
                  ["compress", source, "-o", msq, "--precision", "f8", "--model", model_dir],
                  ["compress", source, "-o", msq, "--refine", "-1", "--model", model_dir],
+                 ["compress", source, "-o", msq, "--max-error", "0.1", "--bpp", "1", "--model", model_dir],
+                 ["compress", source, "-o", msq, "--bpp", "-1", "--model", model_dir],
+                 ["compress", source, "-o", msq, "--max-error", "nan", "--model", model_dir],
                  ["compress", tmp_path / "missing.ply", "-o", msq],
                  ["info", source]):
         code, captured = run_cli(monkeypatch, capsys, *args)

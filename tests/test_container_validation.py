@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 import mapsqueeze
 from mapsqueeze.codec.container import (
     DEFAULT_MAX_TILE_POINTS,
+    DefaultCount,
     TileCoding,
     TileRecord,
     open_container,
@@ -54,7 +55,7 @@ def map_points():
 
 @pytest.fixture(scope="module")
 def compressed(map_points, model):
-    return mapsqueeze.compress(map_points, model=model, precision="f16")
+    return mapsqueeze.compress(map_points, model=model, precision="f16", fallback=False)  # network tiles
 
 
 def parts(data: bytes):
@@ -147,7 +148,7 @@ def test_model_id_resolves_only_to_shipped_models(compressed, model_dir, tmp_pat
 
 
 def test_good_file_still_decodes(compressed, model, map_points):
-    assert len(mapsqueeze.decompress(compressed, model=model)) == len(map_points)
+    assert len(mapsqueeze.decompress(compressed, model=model, n_points=len(map_points))) == len(map_points)
 
 
 # --- property-based mutation of header fields and tile-table entries (checksums recomputed) ---------------------
@@ -196,7 +197,8 @@ def test_fuzzed_headers_and_tables_give_typed_errors_or_decodes(compressed, mode
               suppress_health_check=list(HealthCheck))
     @given(st.lists(_HEADER_FIELDS, max_size=2), _TILE_FIELDS, st.integers(0, 100), st.booleans())
     def mutate(header_fields, tile_fields, position, sum_points):
-        header_changes = {k: v for fields in header_fields for k, v in fields.items()}
+        header_changes = {"default_count": DefaultCount.input}  # decodes to the stored counts, checked below
+        header_changes.update({k: v for fields in header_fields for k, v in fields.items()})
         header, records = parts(compressed)
         if "n_points" in tile_fields and sum_points and "n_points" not in header_changes:
             moved = records[position % len(records)].n_points

@@ -1,7 +1,7 @@
 """Public Python API: compress whole maps to .msq bytes or files and back.
 
     data = mapsqueeze.compress(points)                   # (N, 3) float64 metres -> bytes (model "e1", precision q)
-    cloud = mapsqueeze.decompress(data)                  # -> (about N, 3) float64 metres
+    cloud = mapsqueeze.decompress(data)                  # -> (K, 3) float64 metres (native count, see docs)
     data = mapsqueeze.compress(points, attributes={"intensity": values})   # + per-point attributes
     cloud = mapsqueeze.decompress_cloud(data)            # -> PointCloud: points, attributes, metadata
     mapsqueeze.compress_file("map.ply", "map.msq")
@@ -28,7 +28,9 @@ from mapsqueeze.codec.decompress import (
     tile_origin,
     tile_world_bounds,
 )
+from mapsqueeze.codec.modes import RateTarget
 from mapsqueeze.codec.embedding import Precision
+from mapsqueeze.codec.octreetile import octree_leaf_m
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import (
     DEFAULT_CHUNK_POINTS,
@@ -48,6 +50,10 @@ DEFAULT_MODEL = "e1"
 DEFAULT_PRECISION = "q"
 
 
+RATE_TARGET_MODELS = ("e0", "e1", "e2", "e3")
+"""The models a rate target (max_error / bpp) chooses from when no model is given."""
+
+
 def _model(model):
     """A CompressionModel as is, or load one by shipped name or directory."""
     if isinstance(model, (str, os.PathLike)):
@@ -57,14 +63,27 @@ def _model(model):
     return model
 
 
-def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision = DEFAULT_PRECISION, *,
-             refine_steps: int = 0, progress: ProgressCallback | None = None, keep_zero_points: bool = False,
+def _models(model, target: RateTarget):
+    """The model to compress with, or under a rate target without a model, the list of shipped ones to pick from."""
+    if model is None:
+        return [_model(name) for name in RATE_TARGET_MODELS] if target.given else _model(DEFAULT_MODEL)
+    return _model(model)
+
+
+def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAULT_PRECISION, *,
+             refine_steps: int = 0, max_error: float | None = None, bpp: float | None = None,
+             fallback: bool = True, progress: ProgressCallback | None = None, keep_zero_points: bool = False,
              attributes: dict[str, np.ndarray] | None = None, metadata: dict | None = None,
              attribute_options: AttributeOptions = AttributeOptions(),
              workers: int | None = None, dask_scheduler: str | None = None) -> bytes:
     """(N, 3) float64 map points (metres, e.g. UTM) -> .msq bytes.
 
-    model: shipped name (e0..e3), model directory or loaded CompressionModel. precision: f32, f16 or q.
+    model: shipped name (e0..e3), model directory or loaded CompressionModel (default e1; with max_error or bpp
+    and no model, the one of e0..e3 that meets the target best). Each tile is stored with the coding its mode
+    decision picks (`codec.modes`): by default the lowest D_e at no more bytes than the network's payload;
+    max_error (metres): the smallest coding with D_e <= max_error; bpp: the lowest D_e within that many bits per
+    point. fallback=False offers tiles only the network (and raw coding when sparse), not the octree: the
+    paper's mode. precision: f32, f16 or q.
     refine_steps: encode-time refinement of each tile's embedding (0: the paper's encoder; 20: ~10 % lower D_e at
     the same size, encoding 10-45x slower on CPU; decoding unchanged). progress(done, total) is called after each tile.
     Points at exactly (0, 0, 0), which sensors write for "no return", are left out (with their attributes) unless
@@ -81,9 +100,10 @@ def compress(points: np.ndarray, model=DEFAULT_MODEL, precision: str | Precision
         if n_zero:
             nonzero = points.any(axis=1)
             points, attributes = kept, {name: values[nonzero] for name, values in attributes.items()}
-    return compress_map(points, _model(model), precision, progress=progress, refine_steps=refine_steps,
+    target = RateTarget(max_error, bpp, fallback)
+    return compress_map(points, _models(model, target), precision, progress=progress, refine_steps=refine_steps,
                         attributes=attributes, metadata=metadata, attribute_options=attribute_options,
-                        workers=workers, dask_scheduler=dask_scheduler)
+                        workers=workers, dask_scheduler=dask_scheduler, target=target)
 
 
 def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
@@ -93,7 +113,8 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
                dask_scheduler: str | None = None) -> np.ndarray:
     """.msq bytes (or a .msq file path) -> (K, 3) float64 world points.
 
-    By default every tile gets back its original point count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
+    By default every tile decodes to the count its file states: the native count of its coding (the network's
+    whole output inside the tile; docs/model.md, "Decoded density"), or for version 1 files its input count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
     tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
     choose another density. model defaults to the shipped model named in the file; its weights must match the
     file's. A tile asked for more than max_tile_points points raises DecodeLimitError (a crafted file may claim
@@ -155,6 +176,8 @@ class ContainerInfo:
                                                         else "majority)") for spec in schema.specs]
         return (", ".join(parts) + f"; voxel {schema.voxel_m:g} m; {self.attribute_bytes:,} bytes, "
                 f"{8.0 * self.attribute_bytes / self.n_points:.4f} bits per point")
+    tile_modes: dict[str, int] = dataclasses.field(default_factory=dict)  # tiles per coding: "network", "raw", ...
+    default_count: str = "input"  # what a plain decompress gives per tile: "input" (its input count) or "native"
 
     @property
     def bits_per_point(self) -> float:
@@ -162,7 +185,8 @@ class ContainerInfo:
 
 
 def info(source: bytes | str | os.PathLike) -> ContainerInfo:
-    """Read the header and tile table of a .msq buffer or file (payloads are not read)."""
+    """Read the header and tile table of a .msq buffer or file (of the payloads, only octree tiles' are read,
+    for their leaf edge)."""
     reader, stream = open_container(source)
     with stream:
         header = reader.header
@@ -182,7 +206,20 @@ def info(source: bytes | str | os.PathLike) -> ContainerInfo:
             bounds=np.stack([boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)]),
             attribute_schema=reader.attribute_schema,
             attribute_bytes=reader.file_size - (reader.entries[-1].offset + reader.entries[-1].length),
+            tile_modes=_tile_modes(reader),
+            default_count=header.default_count.name,
         )
+
+
+def _tile_modes(reader) -> dict[str, int]:
+    """Tiles per coding, octree tiles by leaf edge (read from the first bytes of their payloads)."""
+    modes: dict[str, int] = {}
+    for position, entry in enumerate(reader.entries):
+        mode = entry.coding.name
+        if entry.coding is TileCoding.octree:
+            mode += f" {octree_leaf_m(reader.payload(position), entry.label(position)):g} m"
+        modes[mode] = modes.get(mode, 0) + 1
+    return dict(sorted(modes.items()))
 
 
 @dataclass(frozen=True)
@@ -190,7 +227,7 @@ class TileInfo:
     """One tile of a .msq file (`tiles`): where it lies, how it is coded and what it stores."""
 
     index: tuple[int, int, int]  # grid cell: lower corner at origin + index * tile_size
-    coding: str  # how its points are stored: "network" (an embedding decoded by the model) or "raw"
+    coding: str  # how its points are stored: "network" (an embedding decoded by the model), "raw" or "octree"
     model_id: str | None  # the model that decodes it (None: no network needed)
     n_points: int  # points of the input map in the tile (the default decoded count)
     payload_bytes: int
@@ -218,8 +255,9 @@ def tiles(source: bytes | str | os.PathLike) -> list[TileInfo]:
         return result
 
 
-def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=DEFAULT_MODEL,
+def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=None,
                   precision: str | Precision = DEFAULT_PRECISION, *, refine_steps: int = 0,
+                  max_error: float | None = None, bpp: float | None = None, fallback: bool = True,
                   progress: ProgressCallback | None = None, keep_zero_points: bool = False,
                   format: str | None = None,
                   attribute_options: AttributeOptions = AttributeOptions(), workers: int | None = None,
@@ -236,7 +274,8 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     format_name(input_path, format)
     check_output_path(output_path)
-    model = _model(model)
+    target = RateTarget(max_error, bpp, fallback)
+    model = _models(model, target)
     dropped = [0]
 
     def chunks():
@@ -257,7 +296,8 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
                                          "'no return' values); keep them with --keep-zero-points")
 
     data = compress_chunks(chunks, model, precision, progress=progress, refine_steps=refine_steps,
-                           attribute_options=attribute_options, workers=workers, dask_scheduler=dask_scheduler)
+                           attribute_options=attribute_options, workers=workers, dask_scheduler=dask_scheduler,
+                           target=target)
     atomic_write_bytes(output_path, data)
     return dataclasses.replace(info(data), zero_points_dropped=dropped[0])
 

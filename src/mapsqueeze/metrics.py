@@ -117,10 +117,13 @@ def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
     return _chamfer(_match(a, b, _kdtree(a)))
 
 
-def d_euclidean(gt: np.ndarray, rec: np.ndarray) -> float:
-    """D_e (eq. 9-10, d = ||x_i - x_j||_2) in metres: symmetric mean nearest-neighbour distance."""
+def d_euclidean(gt: np.ndarray, rec: np.ndarray, gt_tree: cKDTree | None = None) -> float:
+    """D_e (eq. 9-10, d = ||x_i - x_j||_2) in metres: symmetric mean nearest-neighbour distance.
+
+    `gt_tree`: a cKDTree of `gt`, to reuse it across several reconstructions of the same cloud.
+    """
     gt, rec = validate_points(gt, "gt"), validate_points(rec, "rec")
-    return _d_euclidean(_match(gt, rec, _kdtree(gt)))
+    return _d_euclidean(_match(gt, rec, _kdtree(gt) if gt_tree is None else gt_tree))
 
 
 def d_point_to_plane(gt: np.ndarray, rec: np.ndarray, gt_normals: np.ndarray | None = None) -> float:

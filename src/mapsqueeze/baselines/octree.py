@@ -68,6 +68,22 @@ def _arithmetic_encode(levels: list[np.ndarray]) -> bytes:
     return coder.get_compressed().astype("<u4").tobytes()
 
 
+def encode_occupancy(cells: np.ndarray, depth: int) -> tuple[int, bytes]:
+    """(N, 3) integer leaf cells in [0, 2**depth) -> (leaf count, arithmetic-coded occupancy bytes of every level)."""
+    leaf_codes = np.unique(morton_codes(cells, depth))
+    return len(leaf_codes), _arithmetic_encode(_occupancy_levels(leaf_codes, depth))
+
+
+def decode_occupancy(payload: bytes, depth: int, leaf_count: int) -> np.ndarray:
+    """Inverse of `encode_occupancy`: (leaf_count, 3) int64 leaf cells in Morton order; ContainerError when corrupt."""
+    codes = np.zeros(1, dtype=np.int64)
+    for occupancy in _arithmetic_decode(payload, depth, leaf_count):
+        codes = _children(codes, occupancy)
+    if len(codes) != leaf_count:
+        raise ContainerError(f"octree: {len(codes)} leaves decoded, {leaf_count} expected")
+    return morton_cells(codes)
+
+
 class OctreeCodec(BaselineCodec):
     """Plain occupancy octree over a cube fitted to the points; setting {"leaf_m": leaf cell edge in metres}."""
 

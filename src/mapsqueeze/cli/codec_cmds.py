@@ -55,7 +55,8 @@ def _dask_option() -> typer.models.OptionInfo:
 def compress_command(
     map_path: Path = typer.Argument(..., metavar="MAP", help="point-cloud map (.ply .pcd .las .laz .bin .npy)"),
     output: Path = typer.Option(..., "-o", "--output", help=".msq file to write (atomically)"),
-    model: str = typer.Option(api.DEFAULT_MODEL, "--model", help="e0|e1|e2|e3 or a model directory"),
+    model: str | None = typer.Option(None, "--model", help=f"e0|e1|e2|e3 or a model directory (default "
+                                     f"{api.DEFAULT_MODEL}; with --max-error or --bpp: the best of e0..e3)"),
     precision: str = typer.Option(api.DEFAULT_PRECISION, "--precision",
                                   help="embedding storage: f32, f16 (the paper's) or q (entropy-coded)"),
     refine: int = typer.Option(0, "--refine", min=0, max=MAX_REFINE_STEPS, metavar="STEPS",
@@ -74,21 +75,31 @@ def compress_command(
                                               "as a fraction of each one's range"),
     workers: int | None = _workers_option(),
     dask_scheduler: str | None = _dask_option(),
+    max_error: float | None = typer.Option(None, "--max-error", metavar="METRES",
+                                           help="D_e budget: each tile gets the smallest coding within it"),
+    bpp: float | None = typer.Option(None, "--bpp", metavar="BITS",
+                                     help="rate budget in bits per point: the lowest D_e that fits"),
+    fallback: bool = typer.Option(True, "--fallback/--no-fallback",
+                                  help="let a tile fall back to the classical octree where it is better"),
 ) -> None:
-    """Compress a map: 40 x 40 x 15 m tiles, each encoded by the network (sparse tiles near-exactly); attributes
-    (intensity, colour, labels, ...) on a voxel grid per tile; the LAS header's metadata (CRS) is kept."""
+    """Compress a map: 40 x 40 x 15 m tiles, each stored with the coding its mode decision picks (the network's
+    embedding, raw points or an octree); attributes (intensity, colour, labels, ...) on a voxel grid per tile; the
+    LAS header's metadata (CRS) is kept."""
+    if max_error is not None and bpp is not None:
+        raise typer.BadParameter("give --max-error or --bpp, not both")
     options = AttributeOptions(attributes, attribute_voxel, attribute_step)
     with _tile_progress("compressing") as progress:
-        summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, progress=progress,
+        summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, max_error=max_error,
+                                    bpp=bpp, fallback=fallback, progress=progress,
                                     keep_zero_points=keep_zero_points, format=in_format,
                                     attribute_options=options, workers=workers, dask_scheduler=dask_scheduler)
     console = make_console()
     if summary.zero_points_dropped:
         console.print(f"left out {summary.zero_points_dropped:,} points at exactly (0, 0, 0) (sensor 'no return' "
                       "values; --keep-zero-points keeps them)")
-    console.print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles "
-                  f"({summary.n_raw_tiles} stored raw: too sparse for the network), {summary.file_bytes:,} bytes, "
-                  f"{summary.bits_per_point:.4f} bits per point"
+    modes = ", ".join(f"{count} {mode}" for mode, count in summary.tile_modes.items())
+    console.print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles ({modes}), "
+                  f"{summary.file_bytes:,} bytes, {summary.bits_per_point:.4f} bits per point"
                   + (f"; attributes {', '.join(summary.attributes)}: {summary.attribute_bytes:,} bytes"
                      if summary.attributes else ""))
 
@@ -141,7 +152,9 @@ def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq f
         ("precision", summary.precision),
         ("subsampling r_s", f"{summary.subsampling_dist_m:g} m"),
         ("tile size", " x ".join(f"{v:g}" for v in summary.tile_size) + " m"),
-        ("tiles", f"{summary.n_tiles} ({summary.n_raw_tiles} coded raw)"),
+        ("tiles", f"{summary.n_tiles}: " + ", ".join(f"{count} {mode}" for mode, count in summary.tile_modes.items())),
+        ("default decode", "each tile's input point count" if summary.default_count == "input"
+         else "the native count of each tile's coding (the network's whole output inside the tile)"),
         ("points", f"{summary.n_points:,}"),
         ("file size", f"{summary.file_bytes:,} bytes (header and tile table {summary.header_bytes:,})"),
         ("bits per point", f"{summary.bits_per_point:.4f}"),

@@ -1,4 +1,5 @@
-"""Whole map -> .msq bytes: tile the map, encode each occupied tile with the network (or raw if sparse), pack."""
+"""Whole map -> .msq bytes: tile the map, store each occupied tile with the coding its mode decision picks (the
+network's embedding, raw points or an octree; `codec.modes`), pack."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mapsqueeze.codec.attributes import (
     DEFAULT_RELATIVE_STEP,
@@ -17,8 +19,10 @@ from mapsqueeze.codec.attributes import (
     parse_selection,
 )
 from mapsqueeze.codec.container import (
+    BOUNDS_STEPS,
     MAX_POINTS_PER_TILE,
     AttributeSection,
+    DefaultCount,
     Header,
     TileCoding,
     TileRecord,
@@ -37,12 +41,16 @@ from mapsqueeze.codec.embedding import (
     quantise,
 )
 from mapsqueeze.codec.executor import open_executor
-from mapsqueeze.codec.rawtile import RAW_STEP_M, encode_raw_tile
+from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
+from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, decode_octree_tile, encode_octree_tile
+from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
+from mapsqueeze.codec.tilepoints import network_points, octree_points
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
 from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.io import PointCloud, validate_attributes, work_dir
+from mapsqueeze.metrics import d_euclidean
 
 RAW_POINTS_PER_EMBEDDING = 4
 """A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
@@ -89,23 +97,23 @@ def _ranges(attributes: dict[str, np.ndarray]) -> dict[str, tuple[np.dtype, floa
 
 @dataclass
 class _EncodedTile:
-    """One tile while the map is being compressed: its table fields and candidate payloads."""
+    """One tile while the map is being compressed: its table fields, embedding and candidate codings."""
 
     index: tuple[int, int, int]
     n_points: int
     bounds_lo: tuple[int, int, int]
     bounds_hi: tuple[int, int, int]
-    points: np.ndarray | None  # network embedding (None when the tile is coded raw for sparsity)
+    extent_m: np.ndarray  # size of the tile's bounds box (metres)
+    points: np.ndarray | None  # network embedding (None when the network is no candidate: too sparse)
     features: np.ndarray | None
-    raw: bytes | None  # raw payload, when raw coding is a candidate
+    candidates: list[Candidate]  # classical ones at first; the network's is added once coded
+    network_d_e: float | None = None  # metres: D_e of the network's output for the (unquantised) embedding
+    choice: Candidate | None = None
     attributes: bytes = b""  # attribute stream (codec.attributes), when the map codes attributes
-    network: bytes | None = None  # network payload, once coded
 
     def record(self) -> TileRecord:
-        """The table row and payload: the network's unless the raw payload is no larger."""
-        use_raw = self.network is None or (self.raw is not None and len(self.raw) <= len(self.network))
-        coding, payload = (TileCoding.raw, self.raw) if use_raw else (TileCoding.network, self.network)
-        return TileRecord(self.index, self.n_points, self.bounds_lo, self.bounds_hi, coding, payload)
+        return TileRecord(self.index, self.n_points, self.bounds_lo, self.bounds_hi, self.choice.coding,
+                          self.choice.payload)
 
 
 def compress_map(
@@ -119,10 +127,13 @@ def compress_map(
     attributes: dict[str, np.ndarray] | None = None,
     metadata: dict | None = None,
     attribute_options: AttributeOptions = AttributeOptions(),
+    target: RateTarget = RateTarget(),
     workers: int | None = 1,
     dask_scheduler: str | None = None,
 ) -> bytes:
-    """Compress an (N, 3) float64 map (metres, any coordinate frame) with a loaded CompressionModel.
+    """Compress an (N, 3) float64 map (metres, any coordinate frame) with a loaded CompressionModel, or with the
+    one of a list of them whose tile choices meet `target` best (`codec.modes`; every tile is stored with the
+    candidate coding the target prefers: the network's embedding, raw points or an octree).
 
     position_step_m / feature_step_std set the q quantiser (default DEFAULT_POSITION_STEP_RS x r_s and
     DEFAULT_FEATURE_STEP_STD). refine_steps > 0 refines each network tile's embedding at encode time
@@ -134,17 +145,20 @@ def compress_map(
     metadata (JSON-serialisable, e.g. the LAS header's) is stored; with neither the file is geometry-only.
     """
     check_refine_steps(refine_steps)
+    models, tile_size = _model_list(model)
     points = validate_points(points, name="map")
     attributes = validate_attributes(attributes, len(points), name="map")
     schema = _attribute_schema(_ranges(attributes), metadata, attribute_options)
-    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     coded = [spec.name for spec in schema.specs] if schema else []
-    tile_points = ((tile.index, points[tile.point_indices],
-                    {name: attributes[name][tile.point_indices] for name in coded}) for tile in tiles)
-    return _compress_tiles(tile_points, len(tiles), len(points), origin, model, precision, position_step_m,
-                           feature_step_std, progress, refine_steps, schema, workers, dask_scheduler)
+
+    def tile_points():
+        return ((tile.index, points[tile.point_indices], {name: attributes[name][tile.point_indices] for name in coded})
+                for tile in tiles)
+
+    return _compress_tiles(tile_points, len(tiles), len(points), origin, models, precision, position_step_m,
+                           feature_step_std, progress, refine_steps, target, schema, workers, dask_scheduler)
 
 
 def compress_chunks(
@@ -157,6 +171,7 @@ def compress_chunks(
     spill_dir: str | os.PathLike | None = None,
     refine_steps: int = 0,
     attribute_options: AttributeOptions = AttributeOptions(),
+    target: RateTarget = RateTarget(),
     workers: int | None = 1,
     dask_scheduler: str | None = None,
 ) -> bytes:
@@ -170,7 +185,7 @@ def compress_chunks(
     tiles back one by one and hands them to the encoding workers (memory: one tile per worker).
     """
     check_refine_steps(refine_steps)
-    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
+    models, tile_size = _model_list(model)
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     ranges: dict[str, tuple[np.dtype, float, float]] = {}
     metadata = None
@@ -202,12 +217,15 @@ def compress_chunks(
         indices = sorted(counts)  # the order of tile_map: by (i, j, k)
         for index in indices:  # refused before a tile that large is read back into memory
             _check_tile_size(index, counts[index])
-        tile_points = ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3),
-                        {name: np.fromfile(os.path.join(spill, _spill_name(index, column)), dtype=dtype)
-                         for column, (name, dtype) in enumerate(coded)})
-                       for index in indices)
-        return _compress_tiles(tile_points, len(indices), n_points, origin, model, precision, position_step_m,
-                               feature_step_std, progress, refine_steps, schema, workers, dask_scheduler)
+
+        def tile_points():
+            return ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3),
+                     {name: np.fromfile(os.path.join(spill, _spill_name(index, column)), dtype=dtype)
+                      for column, (name, dtype) in enumerate(coded)})
+                    for index in indices)
+
+        return _compress_tiles(tile_points, len(indices), n_points, origin, models, precision, position_step_m,
+                               feature_step_std, progress, refine_steps, target, schema, workers, dask_scheduler)
 
 
 def _as_cloud(chunk) -> PointCloud:
@@ -216,6 +234,17 @@ def _as_cloud(chunk) -> PointCloud:
         return PointCloud(validate_points(chunk, name="map"))
     points = validate_points(chunk.points, name="map")
     return PointCloud(points, validate_attributes(chunk.attributes, len(points), name="map"), chunk.metadata)
+
+
+def _model_list(model) -> tuple[list, np.ndarray]:
+    """The models to try (one, or each of a list) and their common tile size (metres)."""
+    models = list(model) if isinstance(model, (list, tuple)) else [model]
+    if not models:
+        raise MapsqueezeError("no model to compress with")
+    sizes = {tuple(float(v) for v in m.config.tile_size) for m in models}
+    if len(sizes) > 1:
+        raise MapsqueezeError(f"the models to choose from have different tile sizes: {sorted(sizes)}")
+    return models, np.asarray(sizes.pop(), dtype=np.float64)
 
 
 def check_refine_steps(steps: int) -> None:
@@ -237,41 +266,68 @@ def _spill_name(index: tuple[int, int, int], attribute: int | None = None) -> st
 
 
 def _compress_tiles(
-    tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray]],
+    tile_source: Callable[[], Iterable[tuple[tuple[int, int, int], np.ndarray]]],
     n_tiles: int,
     n_points: int,
     origin: np.ndarray,
-    model,
+    models: list,
     precision: Precision,
     position_step_m: float | None,
     feature_step_std: float,
     progress: ProgressCallback | None,
     refine_steps: int,
+    target: RateTarget,
     schema: AttributeSchema | None = None,
     workers: int | None = 1,
     dask_scheduler: str | None = None,
 ) -> bytes:
-    """Encode (tile index, its float64 world points, its attributes) triples, given in tile order, and assemble
-    the container (with an attribute section when `schema` is given)."""
-    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
-    encoded = []
-    job = _TileJob(model, origin, tile_size, refine_steps, schema)
-    executor = open_executor(workers, dask_scheduler, job, n_tiles)
-    try:
-        for done, tile in enumerate(executor.map(_encode_job, job, tile_points), start=1):
-            encoded.append(tile)
+    """Encode (tile index, its float64 world points, its attributes) triples, given in tile order by each call of
+    tile_source(), with each model in turn; keep the model whose per-tile choices (`codec.modes`) suit the target
+    best; assemble (with an attribute section when `schema` is given)."""
+    best = None
+    for position, model in enumerate(models):
+        def tile_progress(done: int, total: int, offset: int = position * n_tiles) -> None:
             if progress:
-                progress(done, n_tiles)
-    finally:
-        executor.close()
-    n_features = int(model.config.embedding_dim)
-    quant_model = None
+                progress(offset + done, len(models) * n_tiles)
+
+        encoded = _encode_tiles(tile_source(), n_tiles, origin, model, refine_steps, target, schema, workers,
+                                dask_scheduler, tile_progress)
+        quant_model = _code_network_candidates(encoded, model, precision, position_step_m, feature_step_std)
+        weights = [tile.n_points for tile in encoded]
+        if target.bpp is None:
+            choices = [choose_for_error(tile.candidates, target.max_error_m) if target.max_error_m is not None
+                       else choose(tile.candidates, _network_bytes(tile)) for tile in encoded]
+            data = _assemble(encoded, choices, model, precision, quant_model, origin, n_points, schema)
+        else:  # the payload budget is what the file may hold less the header and table of the last attempt
+            target_bytes = target.bpp * n_points / 8
+            budget = target_bytes
+            for _ in range(_RATE_ATTEMPTS):
+                choices = choose_for_rate([tile.candidates for tile in encoded], weights, budget)
+                data = _assemble(encoded, choices, model, precision, quant_model, origin, n_points, schema)
+                if len(data) <= target_bytes:
+                    break
+                budget -= len(data) - target_bytes
+        mean_d_e = summary(weights, choices)[1]
+        score = ((len(data) > target.bpp * n_points / 8, mean_d_e) if target.bpp is not None
+                 else (len(data), mean_d_e))
+        if best is None or score < best[0]:
+            best = (score, data)
+    return best[1]
+
+
+_RATE_ATTEMPTS = 4
+"""Choices tried under a --bpp budget, each with the payload budget shrunk by the previous file's excess."""
+
+
+def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, precision: Precision,
+              quant_model: QuantModel | None, origin: np.ndarray, n_points: int,
+              schema: AttributeSchema | None) -> bytes:
+    """The container of the chosen codings (q: histograms refitted over the tiles that kept the network)."""
+    for tile, choice in zip(encoded, choices):
+        tile.choice = choice
     if precision is Precision.q:
-        quant_model = _code_quantised(encoded, model, position_step_m, feature_step_std, n_features)
-    else:
-        for tile in encoded:
-            if tile.points is not None:
-                tile.network = encode_float(tile.points, tile.features, precision, tile_size)
+        quant_model = _recode_chosen(encoded, quant_model)
+    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     header = Header(
         model_id=model.model_id,
         weights_sha256=model.weights_sha256,
@@ -280,10 +336,11 @@ def _compress_tiles(
         tile_size=tuple(float(v) for v in tile_size),
         origin=tuple(float(v) for v in origin),
         n_points=n_points,
-        n_tiles=n_tiles,
-        n_features=n_features,
+        n_tiles=len(encoded),
+        n_features=int(model.config.embedding_dim),
         raw_step_m=RAW_STEP_M,
         quant_model=quant_model,
+        default_count=DefaultCount.native,
     )
     section = None if schema is None else AttributeSection(schema, [tile.attributes for tile in encoded if schema.specs])
     return serialise_container(header, [tile.record() for tile in encoded], section)
@@ -298,41 +355,96 @@ class _TileJob:
     tile_size: np.ndarray
     refine_steps: int
     schema: AttributeSchema | None
+    target: RateTarget
 
 
 def _encode_job(job: _TileJob, item: tuple[tuple[int, int, int], np.ndarray, dict]) -> _EncodedTile:
-    """One tile's job: (tile index, its float64 world points, its attributes) -> its embedding, raw candidate and
-    coded attributes."""
+    """One tile's job: (tile index, its float64 world points, its attributes) -> its embedding, classical candidates
+    and coded attributes."""
     index, points, attributes = item
     tile_origin = job.origin + np.asarray(index) * job.tile_size
-    tile = _encode_tile(index, tile_origin, points, job.tile_size, job.model, job.refine_steps)
+    tile = _encode_tile(index, tile_origin, points, job.tile_size, job.model, job.refine_steps, job.target)
     if job.schema is not None and job.schema.specs:
         local = to_local(points, frame_origin(tile_origin, tile.bounds_lo, job.tile_size), job.tile_size)
         tile.attributes = encode_tile_attributes(local, attributes, job.schema, job.tile_size)
     return tile
 
 
+def _network_bytes(tile: _EncodedTile) -> int | None:
+    network = [c for c in tile.candidates if c.coding is TileCoding.network]
+    return network[0].n_bytes if network else None
+
+
+def _encode_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,
+                  origin: np.ndarray, model, refine_steps: int, target: RateTarget, schema: AttributeSchema | None,
+                  workers: int | None, dask_scheduler: str | None, progress: ProgressCallback) -> list[_EncodedTile]:
+    """Every tile's candidates with one model, encoded by `workers` processes or a Dask cluster (`codec.executor`)."""
+    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
+    encoded = []
+    job = _TileJob(model, origin, tile_size, refine_steps, schema, target)
+    executor = open_executor(workers, dask_scheduler, job, n_tiles)
+    try:
+        for done, tile in enumerate(executor.map(_encode_job, job, tile_points), start=1):
+            encoded.append(tile)
+            progress(done, n_tiles)
+    finally:
+        executor.close()
+    return encoded
+
+
 def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_points: np.ndarray,
-                 tile_size: np.ndarray, model, refine_steps: int) -> _EncodedTile:
+                 tile_size: np.ndarray, model, refine_steps: int, target: RateTarget = RateTarget()) -> _EncodedTile:
+    """The tile's embedding and its classical candidates, each with its payload and D_e: raw when the tile is sparse
+    enough for raw coding to compete or a rate target is given, the octree at each leaf of OCTREE_LEAVES_M unless
+    the target forbids the fallback."""
     _check_tile_size(index, len(tile_points))
     lo, hi = quantise_bounds(tile_points - tile_origin, tile_size)
     local = to_local(tile_points, frame_origin(tile_origin, lo, tile_size), tile_size)
+    extent = np.subtract(hi, lo) * tile_size / BOUNDS_STEPS
     embedding = model.encode(local)
     n_embedding = len(embedding.points)
-    raw = None
-    if len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
+    tree = cKDTree(local)
+    candidates = []
+    if target.given or len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
         raw = encode_raw_tile(local, tile_size)
-    if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:
-        return _EncodedTile(index, len(local), lo, hi, None, None, raw)
+        decoded = decode_raw_tile(raw, tile_size, len(local), "raw candidate")
+        candidates.append(Candidate(TileCoding.raw, raw, len(raw), d_euclidean(local, decoded, tree), "raw"))
+    if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:  # too sparse for the network and the octree
+        return _EncodedTile(index, len(local), lo, hi, extent, None, None, candidates)
+    for leaf in OCTREE_LEAVES_M if target.fallback else ():
+        payload = encode_octree_tile(local, tile_size, leaf)
+        decoded = octree_points(decode_octree_tile(payload, tile_size, len(local), "octree candidate"), extent, None)
+        candidates.append(Candidate(TileCoding.octree, payload, len(payload), d_euclidean(local, decoded, tree),
+                                    f"octree {leaf:g} m"))
     if refine_steps:
         embedding = model.refine(local, embedding, refine_steps)
-    return _EncodedTile(index, len(local), lo, hi, embedding.points, embedding.features, raw)
+    network_d_e = d_euclidean(local, network_points(model, embedding.points, embedding.features, extent, None), tree)
+    return _EncodedTile(index, len(local), lo, hi, extent, embedding.points, embedding.features, candidates,
+                        network_d_e)
 
 
-def _code_quantised(encoded: list[_EncodedTile], model, position_step_m: float | None, feature_step_std: float,
-                    n_features: int) -> QuantModel:
-    """Quantise every network tile with a map-wide quantiser, fit the shared histograms, then code each tile."""
+def _code_network_candidates(encoded: list[_EncodedTile], model, precision: Precision, position_step_m: float | None,
+                             feature_step_std: float) -> QuantModel | None:
+    """Code every network tile (q: with a quantiser and histograms fitted over all of them) and add its candidate:
+    the payload's size and the D_e of the network's output for the unquantised embedding, measured while the tile
+    was in memory (the embedding coding adds 0.4-2.4 % to it, README)."""
     network_tiles = [tile for tile in encoded if tile.points is not None]
+    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
+    quant_model = None
+    if precision is Precision.q:
+        quant_model = _fit_quant_model(network_tiles, model, position_step_m, feature_step_std)
+        payloads = [quant_model.encode(q) for q in _quantised(network_tiles, quant_model)]
+    else:
+        payloads = [encode_float(tile.points, tile.features, precision, tile_size) for tile in network_tiles]
+    for tile, payload in zip(network_tiles, payloads):
+        tile.candidates.append(Candidate(TileCoding.network, payload, len(payload), tile.network_d_e, "network"))
+    return quant_model
+
+
+def _fit_quant_model(network_tiles: list[_EncodedTile], model, position_step_m: float | None,
+                     feature_step_std: float) -> QuantModel:
+    """A map-wide q quantiser and histograms fitted over the given network tiles."""
+    n_features = int(model.config.embedding_dim)
     features = np.concatenate([t.features for t in network_tiles] or [np.zeros((0, n_features), np.float32)])
     r_s = float(model.config.subsampling_dist)
     if position_step_m is None:
@@ -340,7 +452,20 @@ def _code_quantised(encoded: list[_EncodedTile], model, position_step_m: float |
     quantiser = Quantiser.fit(features, position_step_m, feature_step_std)
     grid = CellGrid(r_s, tuple(float(v) for v in model.config.tile_size))
     quantised = [quantise(tile.points, tile.features, grid, quantiser) for tile in network_tiles]
-    quant_model = QuantModel.fit(quantised, grid, quantiser)
-    for tile, q in zip(network_tiles, quantised):
-        tile.network = quant_model.encode(q)
-    return quant_model
+    return QuantModel.fit(quantised, grid, quantiser)
+
+
+def _quantised(network_tiles: list[_EncodedTile], quant_model: QuantModel) -> list:
+    return [quantise(tile.points, tile.features, quant_model.grid, quant_model.quantiser) for tile in network_tiles]
+
+
+def _recode_chosen(encoded: list[_EncodedTile], quant_model: QuantModel) -> QuantModel:
+    """Refit the q histograms over the tiles that kept the network (same quantiser, so the same decoded points)
+    and code those tiles with them."""
+    chosen = [tile for tile in encoded if tile.choice.coding is TileCoding.network]
+    quantised = _quantised(chosen, quant_model)
+    refitted = QuantModel.fit(quantised, quant_model.grid, quant_model.quantiser)
+    for tile, q in zip(chosen, quantised):
+        payload = refitted.encode(q)
+        tile.choice = Candidate(TileCoding.network, payload, len(payload), tile.choice.d_e, tile.choice.label)
+    return refitted

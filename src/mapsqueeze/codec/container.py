@@ -26,7 +26,9 @@ from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
-VERSION = 1
+VERSION = 2
+"""Version written; version 1 files (no default-count field, network and raw tiles only) still read."""
+READABLE_VERSIONS = (1, 2)
 _PREAMBLE = struct.Struct("<4sHHI")  # magic, version, reserved flags, header body length
 _CRC = struct.Struct("<I")
 _TABLE_LENGTH = struct.Struct("<I")
@@ -51,6 +53,14 @@ class TileCoding(enum.IntEnum):
 
     network = 0  # the model's embedding, decoded by the network
     raw = 1  # sparse tile: points quantised relative to the tile frame (codec.rawtile)
+    octree = 2  # classical fallback: occupancy octree over the tile frame (codec.octreetile; version 2)
+
+
+class DefaultCount(enum.IntEnum):
+    """How many points a tile decodes to when the reader asks for no count or density."""
+
+    input = 0  # the tile's input point count (every version 1 file)
+    native = 1  # everything the tile's coding gives inside its box: the network's whole output, the octree's leaves
 
 
 @dataclass(frozen=True)
@@ -68,6 +78,7 @@ class Header:
     n_features: int  # embedding feature channels
     raw_step_m: float  # quantisation step of raw tiles (metres)
     quant_model: QuantModel | None = None  # precision q only
+    default_count: DefaultCount = DefaultCount.native
 
     @property
     def grid(self) -> CellGrid:
@@ -81,14 +92,14 @@ class Header:
         writer.pack("B", len(name))
         writer.raw(name)
         writer.raw(bytes.fromhex(self.weights_sha256))
-        writer.pack("Bd3d3dQIBd", self.precision, self.subsampling_dist_m, *self.tile_size, *self.origin,
-                    self.n_points, self.n_tiles, self.n_features, self.raw_step_m)
+        writer.pack("Bd3d3dQIBdB", self.precision, self.subsampling_dist_m, *self.tile_size, *self.origin,
+                    self.n_points, self.n_tiles, self.n_features, self.raw_step_m, self.default_count)
         if self.precision is Precision.q:
             self.quant_model.write(writer)
         return writer.getvalue()
 
     @classmethod
-    def parse(cls, body: bytes) -> "Header":
+    def parse(cls, body: bytes, version: int = VERSION) -> "Header":
         reader = ByteReader(body, "header")
         (name_length,) = reader.unpack("B")
         try:
@@ -99,6 +110,13 @@ class Header:
         precision_byte, r_s, *rest = reader.unpack("Bd3d3dQIBd")
         tile_size, origin = tuple(rest[0:3]), tuple(rest[3:6])
         n_points, n_tiles, n_features, raw_step = rest[6:]
+        default_count = DefaultCount.input
+        if version >= 2:
+            (count_byte,) = reader.unpack("B")
+            try:
+                default_count = DefaultCount(count_byte)
+            except ValueError:
+                raise reader.fail(f"unknown default count rule {count_byte}") from None
         try:
             precision = Precision(precision_byte)
         except ValueError:
@@ -116,7 +134,8 @@ class Header:
             raise reader.fail(str(exc)) from None
         if not 1 <= n_features <= 64:
             raise reader.fail(f"{n_features} embedding channels")
-        header = cls(model_id, sha, precision, r_s, tile_size, origin, n_points, n_tiles, n_features, raw_step)
+        header = cls(model_id, sha, precision, r_s, tile_size, origin, n_points, n_tiles, n_features, raw_step,
+                     default_count=default_count)
         if precision is Precision.q:
             quant_model = QuantModel.read(reader, header.grid)
             if len(quant_model.features) != n_features:
@@ -239,8 +258,10 @@ class ContainerReader:
         magic, version, flags, body_length = _PREAMBLE.unpack(preamble)
         if magic != MAGIC:
             raise self._error("not a .msq container (bad magic bytes)")
-        if version != VERSION:
-            raise self._error(f"unsupported .msq version {version} (this mapsqueeze reads version {VERSION})")
+        if version not in READABLE_VERSIONS:
+            raise self._error(f"unsupported .msq version {version} (this mapsqueeze reads versions "
+                              f"{', '.join(map(str, READABLE_VERSIONS))})")
+        self.version = version
         if flags & ~ATTRIBUTES_FLAG:
             raise self._error(f"reserved flags 0x{flags & ~ATTRIBUTES_FLAG:04x} set (written by a newer mapsqueeze?)")
         if body_length > MAX_HEADER_BYTES or _PREAMBLE.size + body_length + _CRC.size > self.file_size:
@@ -249,7 +270,7 @@ class ContainerReader:
         if zlib.crc32(preamble + body[:-_CRC.size]) != _CRC.unpack(body[-_CRC.size:])[0]:
             raise self._error("header CRC mismatch (corrupt header)")
         try:
-            self.header = Header.parse(body[:-_CRC.size])
+            self.header = Header.parse(body[:-_CRC.size], version)
         except ContainerError as exc:
             raise self._error(str(exc)) from None
         self.entries = self._read_table(_PREAMBLE.size + body_length + _CRC.size)
@@ -328,7 +349,7 @@ class ContainerReader:
             length = reader.varint(limit=2**32)
             (crc,) = reader.unpack("I")
             label = TileEntry(index, n_points, lo, hi, TileCoding.network, offset, length, crc).label(position)
-            if coding not in TileCoding.__members__.values():
+            if coding not in TileCoding.__members__.values() or (self.version < 2 and coding == TileCoding.octree):
                 raise self._error(f"{label}: unknown coding {coding}")
             if not 1 <= n_points <= MAX_POINTS_PER_TILE or any(a > b for a, b in zip(lo, hi)):
                 raise self._error(f"{label}: bad point count or bounds")

@@ -13,6 +13,7 @@ from mapsqueeze.codec.container import (
     DEFAULT_MAX_TILE_POINTS,
     MAX_POINTS_PER_TILE,
     ContainerReader,
+    DefaultCount,
     Header,
     TileCoding,
     TileEntry,
@@ -21,7 +22,9 @@ from mapsqueeze.codec.container import (
 )
 from mapsqueeze.codec.embedding import Precision, decode_float, dequantise
 from mapsqueeze.codec.executor import open_executor
+from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.rawtile import decode_raw_tile
+from mapsqueeze.codec.tilepoints import network_points, octree_points
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.geometry.resample import resample_to_count
 from mapsqueeze.io import PointCloud
@@ -55,10 +58,12 @@ def tile_world_bounds(header: Header, entry: TileEntry) -> np.ndarray:
 
 
 def target_counts(header: Header, entries: list[TileEntry], density: float | None, n_points: int | None,
-                  max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> list[int]:
-    """Points to decode per tile: the stored counts, `density` per m^3 of each tile's box, or `n_points` in all
-    (split in proportion to the stored counts, largest remainders first). A count above `max_tile_points`
-    (at most MAX_POINTS_PER_TILE) raises DecodeLimitError before anything is decoded."""
+                  max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> list[int | None]:
+    """Points to decode per tile: `density` per m^3 of each tile's box, `n_points` in all (split in proportion to
+    the stored counts, largest remainders first), or else the file's default: the stored counts, or None (the
+    native count of each tile's coding) when the header's default count is native. A count above
+    `max_tile_points` (at most MAX_POINTS_PER_TILE; for the native default, a stored count) raises
+    DecodeLimitError before anything is decoded."""
     if density is not None and n_points is not None:
         raise InvalidPointCloudError("give either a density or a point count, not both")
     if not 1 <= max_tile_points <= MAX_POINTS_PER_TILE:
@@ -84,6 +89,8 @@ def target_counts(header: Header, entries: list[TileEntry], density: float | Non
         raise DecodeLimitError(f"that decodes {max(counts):,} points in one tile, more than the limit of "
                                f"{max_tile_points:,} points per tile; allow more with --max-tile-points N "
                                f"(API: max_tile_points=N, at most {MAX_POINTS_PER_TILE:,})")
+    if density is None and n_points is None and header.default_count is DefaultCount.native:
+        return [None] * len(entries)
     return counts
 
 
@@ -129,36 +136,37 @@ def decode_embedding(reader: ContainerReader, position: int) -> tuple[np.ndarray
         raise _undecodable(label, exc) from None
 
 
-def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, count: int, label: str) -> np.ndarray:
+def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, count: int | None, label: str,
+                   max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> np.ndarray:
     """A tile's payload bytes decoded to `count` float32 points relative to `tile_frame`, all inside the tile's
-    bounds.
+    bounds (count None: the coding's native count, e.g. the network's whole output inside the box, refused above
+    `max_tile_points`).
 
     The network grows surfaces past the tile's bounds box; those points are dropped (the neighbouring tile codes
-    that space) and the count is restored from the points inside (`keep_inside`), so tile faces show no seams.
+    that space) and the count is restored from the points inside (`tilepoints.keep_inside`), so tile faces show
+    no seams.
     """
     tile_size = np.asarray(header.tile_size)
     try:
         if entry.coding is TileCoding.raw:
             local = resample_to_count(
                 decode_raw_tile(payload, tile_size, entry.n_points, label, header.raw_step_m), count)
+        elif entry.coding is TileCoding.octree:
+            local = octree_points(decode_octree_tile(payload, tile_size, entry.n_points, label),
+                                  entry.frame_extent_m(tile_size), count)
         else:
-            decoded = model.decode(*_embedding_from_payload(header, entry, payload, label))
-            local = resample_to_count(keep_inside(decoded, entry.frame_extent_m(tile_size)), count)
+            points, features = _embedding_from_payload(header, entry, payload, label)
+            native = None if count is not None else len(points) * int(np.prod(model.config.upsampling_factors))
+            if native is not None and native > max_tile_points:
+                raise DecodeLimitError(f"{label}: its native count of {native:,} points is more than the limit of "
+                                       f"{max_tile_points:,} points per tile; allow more with --max-tile-points N "
+                                       f"(API: max_tile_points=N, at most {MAX_POINTS_PER_TILE:,})")
+            local = network_points(model, points, features, entry.frame_extent_m(tile_size), count)
     except MapsqueezeError:
         raise
     except (ValueError, IndexError, OverflowError) as exc:
         raise _undecodable(label, exc) from None
     return local
-
-
-def keep_inside(cloud: np.ndarray, extent_m: np.ndarray) -> np.ndarray:
-    """The points of a decoded (K, 3) float32 tile cloud inside its bounds box [0, extent_m] (metres); when none
-    is (a degenerate decode), every point clamped into the box, so a tile never decodes to nothing."""
-    upper = np.asarray(extent_m).astype(np.float32)
-    inside = ((cloud >= 0) & (cloud <= upper)).all(axis=1)
-    if inside.any():
-        return cloud[inside]
-    return np.clip(cloud, np.float32(0), upper)
 
 
 def iter_decoded_tiles(
@@ -212,15 +220,15 @@ def iter_decoded_clouds(
             model = _load_matching_model(model, header, reader.name)
         schema = reader.attribute_schema
         metadata = schema.metadata if schema else {}
-        jobs = [(position, count) for position, count in zip(selected, counts) if count]
+        jobs = [(position, count) for position, count in zip(selected, counts) if count != 0]
         payloads = ((reader.entries[position], reader.payload(position), count,
                      f"{reader.name}: {reader.entries[position].label(position)}") for position, count in jobs)
-        context = (header, model)
+        context = (header, model, max_tile_points)
         executor = open_executor(workers, dask_scheduler, context, len(jobs))
         try:
             decoded = executor.map(_decode_job, context, payloads)
             for done, (position, count) in enumerate(zip(selected, counts), start=1):
-                if count:
+                if count != 0:
                     local = next(decoded)
                     values = {}
                     if attributes and reader.attribute_entries:
@@ -239,12 +247,12 @@ def iter_decoded_clouds(
             executor.close()
 
 
-def _decode_job(context: tuple[Header, object], item: tuple[TileEntry, bytes, int, str]) -> np.ndarray:
+def _decode_job(context: tuple[Header, object, int], item: tuple[TileEntry, bytes, int | None, str]) -> np.ndarray:
     """One tile's job: (table entry, payload bytes, point count, label) -> float32 points (`decode_payload`);
-    context: the container's header and the model."""
-    header, model = context
+    context: the container's header, the model and the points-per-tile limit."""
+    header, model, max_tile_points = context
     entry, payload, count, label = item
-    return decode_payload(header, entry, payload, model, count, label)
+    return decode_payload(header, entry, payload, model, count, label, max_tile_points)
 
 
 def _intersects(a: np.ndarray, b: np.ndarray) -> bool:

@@ -1,0 +1,32 @@
+"""A tile's decoded points from its coding's output: the one rule the decoder and the compressor's mode decision
+share (tile-local float32 metres relative to the tile frame, inside the tile's bounds box [0, extent])."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapsqueeze.geometry.resample import resample_to_count
+
+
+def keep_inside(cloud: np.ndarray, extent_m: np.ndarray) -> np.ndarray:
+    """The points of a decoded (K, 3) float32 tile cloud inside its bounds box [0, extent_m] (metres); when none
+    is (a degenerate decode), every point clamped into the box, so a tile never decodes to nothing."""
+    upper = np.asarray(extent_m).astype(np.float32)
+    inside = ((cloud >= 0) & (cloud <= upper)).all(axis=1)
+    if inside.any():
+        return cloud[inside]
+    return np.clip(cloud, np.float32(0), upper)
+
+
+def network_points(model, points: np.ndarray, features: np.ndarray, extent_m: np.ndarray,
+                   count: int | None) -> np.ndarray:
+    """The network's whole output for an embedding, cropped to the box (the neighbouring tile codes the space
+    beyond it, so no point is moved onto a face), then resampled to `count` (None: all of it)."""
+    return resample_to_count(keep_inside(model.decode(points, features), extent_m), count).astype(np.float32)
+
+
+def octree_points(centres: np.ndarray, extent_m: np.ndarray, count: int | None) -> np.ndarray:
+    """Octree leaf centres moved into the box (a leaf holds input points, so its nearest box point is still in
+    it), resampled to `count` (None: one point per leaf)."""
+    upper = np.asarray(extent_m).astype(np.float32)
+    return resample_to_count(np.clip(centres, np.float32(0), upper), count).astype(np.float32)
