@@ -8,7 +8,6 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mapsqueeze.codec.attributes import (
     DEFAULT_RELATIVE_STEP,
@@ -403,6 +402,8 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
     extent = np.subtract(hi, lo) * tile_size / BOUNDS_STEPS
     embedding = model.encode(local)
     n_embedding = len(embedding.points)
+    from scipy.spatial import cKDTree  # imported here: the CLI starts without scipy
+
     tree = cKDTree(local)
     candidates = []
     if target.given or len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:

@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 
-from mapsqueeze.baselines.octree import decode_occupancy, encode_occupancy
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.morton import MAX_BITS
@@ -33,6 +32,8 @@ def octree_depth(tile_size: np.ndarray, leaf_m: float) -> int:
 
 def encode_octree_tile(points_local: np.ndarray, tile_size: np.ndarray, leaf_m: float) -> bytes:
     """Points (N, 3) metres relative to the tile frame, in [0, tile_size] -> octree payload."""
+    from mapsqueeze.baselines.octree import encode_occupancy  # imported here: the CLI starts without the baselines
+
     leaf_m = float(np.float32(leaf_m))
     depth = octree_depth(tile_size, leaf_m)
     cells = np.clip(np.floor(np.asarray(points_local, dtype=np.float64) / leaf_m), 0, (1 << depth) - 1)
@@ -59,6 +60,8 @@ def decode_octree_tile(payload: bytes, tile_size: np.ndarray, max_points: int, w
     leaf_count = reader.varint(limit=max_points + 1)
     if leaf_count < 1:
         raise reader.fail("octree tile without leaves")
+    from mapsqueeze.baselines.octree import decode_occupancy
+
     try:
         cells = decode_occupancy(reader.raw(reader.remaining), depth, leaf_count)
     except ContainerError as exc:
