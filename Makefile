@@ -1,11 +1,11 @@
-# Entry points on a fresh machine: `make demo` (main job), `make test` (fast suite), `make test-all` (CI).
+# Entry points on a fresh machine: `make demo` (main job), `make test` (every test: what CI runs), `make test-fast`.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 # The CPU wheel of torch 2.13.0 lies on these machines' disk; elsewhere set TORCH_SPEC (e.g. TORCH_SPEC=torch for CUDA).
 TORCH_SPEC ?= torch==2.13.0
 
-.PHONY: install demo test test-all clean
+.PHONY: install demo test test-fast clean
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,10 +19,10 @@ demo: install
 	$(VENV)/bin/mapsqueeze demo
 
 test: install
-	$(PY) -m pytest tests -m "not slow"
-
-test-all: install
 	$(PY) -m pytest tests
+
+test-fast: install
+	$(PY) -m pytest tests -m "not slow"
 
 clean:
 	rm -rf $(VENV) build dist src/*.egg-info

@@ -4,6 +4,7 @@ network's embedding, raw points or an octree; `codec.modes`), pack."""
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -387,7 +388,7 @@ def _encode_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, 
             encoded.append(tile)
             progress(done, n_tiles)
     finally:
-        executor.close()
+        executor.close(abort=sys.exc_info()[0] is not None)
     return encoded
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -244,7 +245,7 @@ def iter_decoded_clouds(
                 if progress:
                     progress(done, len(selected))
         finally:
-            executor.close()
+            executor.close(abort=sys.exc_info()[0] is not None)
 
 
 def _decode_job(context: tuple[Header, object, int], item: tuple[TileEntry, bytes, int | None, str]) -> np.ndarray:

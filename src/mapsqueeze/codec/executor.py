@@ -9,6 +9,7 @@ on its share of the cores; results do not depend on where a job ran, so every ex
 from __future__ import annotations
 
 import os
+import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
@@ -44,7 +45,7 @@ class SerialExecutor:
     def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
         return (function(context, item) for item in items)
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
         pass
 
 
@@ -59,14 +60,19 @@ class ProcessExecutor:
         self.workers = workers
         start = multiprocessing.get_context("forkserver")
         start.set_forkserver_preload(["mapsqueeze.codec.compress", "mapsqueeze.codec.decompress", "mapsqueeze.model"])
+        _start_quiet_forkserver()
         self._pool = ProcessPoolExecutor(workers, mp_context=start, initializer=_install_context,
-                                         initargs=(context, _threads_per_worker(workers)))
+                                         initargs=(context, _threads_per_worker(workers), _ParentStderr()))
 
     def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
         return _ordered(lambda item: self._pool.submit(_run_installed, function, item), items,
                         IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
+        """Stop the workers; `abort` (an error or a signal ended the run) terminates them first."""
+        if abort:
+            for process in list(self._pool._processes.values()):  # CPython's table of live workers
+                process.terminate()
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
@@ -98,7 +104,7 @@ class DaskExecutor:
                                                          pure=False, retries=DASK_RETRIES), items,
                         IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
         self._client.close()
         if self._cluster is not None:
             self._cluster.close()
@@ -140,10 +146,44 @@ def _threads_per_worker(workers: int) -> int:
 _context: Any = None
 
 
-def _install_context(context: Any, threads: int) -> None:
-    """Worker-process initialiser: keep the context for every job and limit torch's threads."""
+def _start_quiet_forkserver() -> None:
+    """Start the forkserver (once per process) with its stderr on the null device: a worker that is still being
+    spawned when a signal or an error ends this process fails to load its spawn data and would print a traceback.
+    Each worker gets this process's stderr back in `_install_context`, once it has started."""
+    import multiprocessing.forkserver
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
+
+
+class _ParentStderr:
+    """This process's stderr, duplicated into a worker when the worker is spawned."""
+
+    def __reduce__(self):
+        from multiprocessing.reduction import DupFd
+
+        return _received_stderr, (DupFd(2),)
+
+
+def _received_stderr(handle: Any) -> Any:
+    return handle
+
+
+def _install_context(context: Any, threads: int, stderr: Any) -> None:
+    """Worker-process initialiser: write to the parent's stderr, keep the context for every job and limit torch's
+    threads."""
     global _context
     import torch
+
+    os.dup2(stderr.detach(), 2)
 
     torch.set_num_threads(threads)
     _context = context
