@@ -228,13 +228,14 @@ def test_config_json_round_trip():
 # --- faithfulness: the reference checkpoints reproduce their golden outputs in this code -----------------------
 
 # Embedding-feature difference |ours - golden| over all n_emb x 3 values: (mean, 99th percentile, max) bounds.
-# Measured (mean / p99 / max): e0 0.042 / 0.235 / 0.654, e1 0.036 / 0.216 / 0.466, e2 0.041 / 0.382 / 1.268,
-# e3 0.021 / 0.158 / 0.245 (feature std ~1.2). The embedding points are identical; the features differ because the
-# first two encoder blocks cap the in-radius neighbours (70 / 50) of 90 % of their queries, and we take the evenly
-# spread subset in our search cells' scan order where the reference takes it in its octree's order. A few embedding
-# points in dense areas collect those differences (e2: 15 of 993 differ by more than 0.5 in some channel); they
-# move the decoded cloud by centimetres and the end-to-end D_e by < 1.3 %. So the mean and the 99th percentile
-# are bounded tightly (a regression in the encoder moves them), the max loosely.
+# Measured with benchmarks/reference_golden.py (mean / p99 / max): e0 0.042 / 0.235 / 0.654,
+# e1 0.036 / 0.216 / 0.466, e2 0.041 / 0.382 / 1.268, e3 0.021 / 0.158 / 0.245 (feature std ~1.2). The embedding
+# points are identical; the features differ because the first two encoder blocks cap the in-radius neighbours
+# (70 / 50) of 90 % of their queries, and we take the evenly spread subset in our search cells' scan order where
+# the reference takes it in its octree's order. A few embedding points in dense areas collect those differences
+# (e2: 15 of 993 differ by more than 0.5 in some channel); they move the decoded cloud by centimetres and the
+# end-to-end D_e by < 1.3 %. So the mean and the 99th percentile are bounded tightly (a regression in the encoder
+# moves them), the max loosely.
 FEATURE_DIFF_BOUNDS = {
     "e0": (0.050, 0.28, 0.9),
     "e1": (0.043, 0.26, 0.8),
