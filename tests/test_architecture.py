@@ -13,7 +13,7 @@ FLOORS = {
     "codec": 4,
     "api": 5,
     "train": 6,
-    "bench": 7, "benchmark": 7, "demo": 7, "view": 7,
+    "benchmark": 7, "demo": 7, "view": 7,
     "cli": 8,
     "__init__": 9, "__main__": 9,
 }
