@@ -22,9 +22,7 @@ from mapsqueeze.codec.embedding import (
     Precision,
     QuantModel,
     Quantiser,
-    decode_float,
     dequantise,
-    encode_float,
     quantise,
 )
 from mapsqueeze.codec.entropy import (
@@ -36,6 +34,7 @@ from mapsqueeze.codec.entropy import (
     decode_gaps,
     encode_gaps,
 )
+from mapsqueeze.codec.latent import LATENT_CODECS, LatentLayout
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
@@ -186,16 +185,70 @@ def test_q_coder_keeps_duplicate_cells():
 def test_float_coders_round_trip(name):
     precision = Precision[name]
     rng = np.random.default_rng(2)
-    tile = np.array([40.0, 40.0, 15.0])
-    points, features = synthetic_embedding(rng, CellGrid(2.0, tuple(tile)), 100)
-    payload = encode_float(points, features, precision, tile)
+    layout = LatentLayout(2.0, (40.0, 40.0, 15.0), 3)
+    points, features = synthetic_embedding(rng, CellGrid(2.0, layout.tile_size), 100)
+    codec = LATENT_CODECS[precision].fit([(points, features)], layout)
+    payload = codec.encode(points, features)
     assert len(payload) == 1 + 100 * 6 * (4 if precision is Precision.f32 else 2)
-    got_points, got_features = decode_float(payload, precision, tile, 3, 100, "tile")
+    got_points, got_features = codec.decode(payload, 100, "tile")
     if precision is Precision.f32:
         assert got_points.tobytes() == points.tobytes() and got_features.tobytes() == features.tobytes()
     else:
         np.testing.assert_array_equal(got_features, features.astype(np.float16).astype(np.float32))
         np.testing.assert_allclose(got_points, points, atol=0.02)
+
+
+def pinned_embeddings() -> list[tuple[np.ndarray, np.ndarray]]:
+    """Three tiles' embeddings (150, 400 and 1 points) of fixed random numbers, tile-local metres and features."""
+    rng = np.random.default_rng(5)
+    tiles = []
+    for count in (150, 400, 1):
+        points = (rng.random((count, 3)) * [40.0, 40.0, 15.0]).astype(np.float32)
+        features = (rng.normal(size=(count, 3)) * [1.5, 0.8, 0.3] + [0.2, -0.1, 0.0]).astype(np.float32)
+        tiles.append((points, features))
+    return tiles
+
+
+@pytest.mark.parametrize(("name", "digest"), [
+    ("f32", "ea4d8b510d1a4007a17bcf227e7696d0cc1b21f5c681333640463aa06ea4f96a"),
+    ("f16", "7a9d65e3918f723db1bb8ef1d3cb6a12cca3aaf2eb41835967c757e77f2f3b16"),
+    ("q", "2bcde87386437f20ccbaf010c2415113fabbb7f5f9c4def85eba1334cac66160"),
+])
+def test_latent_codec_bytes_are_pinned(name, digest):
+    """Header state and tile payloads of each precision must not drift: pinned digests, changed only with the
+    format; the codec read back from its header state decodes what the fitted one encoded."""
+    import hashlib
+
+    layout = LatentLayout(2.0, (40.0, 40.0, 15.0), 3)
+    tiles = pinned_embeddings()
+    codec = LATENT_CODECS[Precision[name]].fit(tiles, layout)
+    writer = ByteWriter()
+    codec.write(writer)
+    payloads = [codec.encode(points, features) for points, features in tiles]
+    assert hashlib.sha256(writer.getvalue() + b"".join(payloads)).hexdigest() == digest
+    read = LATENT_CODECS[Precision[name]].read(ByteReader(writer.getvalue(), "header"), layout)
+    for (points, _), payload in zip(tiles, payloads):
+        expected, got = codec.decode(payload, len(points), "tile"), read.decode(payload, len(points), "tile")
+        assert expected[0].tobytes() == got[0].tobytes() and expected[1].tobytes() == got[1].tobytes()
+
+
+@pytest.mark.parametrize("name", ["f32", "f16", "q"])
+def test_latent_refit_keeps_decoded_points(name):
+    """A codec refitted over a subset of the tiles (the tiles that keep the network) decodes them to the same
+    embedding as the codec fitted over all tiles; q refits its histograms to the subset only."""
+    layout = LatentLayout(2.0, (40.0, 40.0, 15.0), 3)
+    tiles = pinned_embeddings()
+    codec = LATENT_CODECS[Precision[name]].fit(tiles, layout)
+    refitted = codec.refit(tiles[1:])
+    for points, features in tiles[1:]:
+        expected = codec.decode(codec.encode(points, features), len(points), "tile")
+        got = refitted.decode(refitted.encode(points, features), len(points), "tile")
+        assert expected[0].tobytes() == got[0].tobytes() and expected[1].tobytes() == got[1].tobytes()
+    if name == "q":
+        assert refitted.model.quantiser is codec.model.quantiser
+        assert len(refitted.encode(*tiles[1])) < len(codec.encode(*tiles[1]))
+    else:
+        assert refitted is codec
 
 
 def test_raw_tile_is_near_exact():
@@ -491,7 +544,7 @@ def test_payload_checks_catch_forged_crcs(network_only, compressed):
     position = next(p for p, e in enumerate(reader.entries) if e.coding is TileCoding.network)
     entry = reader.entries[position]
     with pytest.raises(ContainerError, match=f"tile {position}"):
-        reader.header.quant_model.decode(b"\x07" + b"\xff" * (entry.length - 1), entry.n_points, f"tile {position}")
+        reader.header.latent.decode(b"\x07" + b"\xff" * (entry.length - 1), entry.n_points, f"tile {position}")
     assert zlib.crc32(network_only[entry.offset:entry.offset + entry.length]) == entry.crc32
     reader, stream = open_container(compressed)
     with stream:

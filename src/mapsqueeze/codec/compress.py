@@ -30,17 +30,9 @@ from mapsqueeze.codec.container import (
     quantise_bounds,
     serialise_container,
 )
-from mapsqueeze.codec.embedding import (
-    DEFAULT_FEATURE_STEP_STD,
-    DEFAULT_POSITION_STEP_RS,
-    CellGrid,
-    Precision,
-    QuantModel,
-    Quantiser,
-    encode_float,
-    quantise,
-)
+from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
 from mapsqueeze.codec.executor import open_executor
+from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
 from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, decode_octree_tile, encode_octree_tile
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
@@ -292,18 +284,18 @@ def _compress_tiles(
 
         encoded = _encode_tiles(tile_source(), n_tiles, origin, model, refine_steps, target, schema, workers,
                                 dask_scheduler, tile_progress)
-        quant_model = _code_network_candidates(encoded, model, precision, position_step_m, feature_step_std)
+        latent = _code_network_candidates(encoded, model, precision, position_step_m, feature_step_std)
         weights = [tile.n_points for tile in encoded]
         if target.bpp is None:
             choices = [choose_for_error(tile.candidates, target.max_error_m) if target.max_error_m is not None
                        else choose(tile.candidates, _network_bytes(tile)) for tile in encoded]
-            data = _assemble(encoded, choices, model, precision, quant_model, origin, n_points, schema)
+            data = _assemble(encoded, choices, model, latent, origin, n_points, schema)
         else:  # the payload budget is what the file may hold less the header and table of the last attempt
             target_bytes = target.bpp * n_points / 8
             budget = target_bytes
             for _ in range(_RATE_ATTEMPTS):
                 choices = choose_for_rate([tile.candidates for tile in encoded], weights, budget)
-                data = _assemble(encoded, choices, model, precision, quant_model, origin, n_points, schema)
+                data = _assemble(encoded, choices, model, latent, origin, n_points, schema)
                 if len(data) <= target_bytes:
                     break
                 budget -= len(data) - target_bytes
@@ -319,27 +311,25 @@ _RATE_ATTEMPTS = 4
 """Choices tried under a --bpp budget, each with the payload budget shrunk by the previous file's excess."""
 
 
-def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, precision: Precision,
-              quant_model: QuantModel | None, origin: np.ndarray, n_points: int,
-              schema: AttributeSchema | None) -> bytes:
-    """The container of the chosen codings (q: histograms refitted over the tiles that kept the network)."""
+def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, latent: LatentCodec,
+              origin: np.ndarray, n_points: int, schema: AttributeSchema | None) -> bytes:
+    """The container of the chosen codings (the latent codec refitted over the tiles that kept the network)."""
     for tile, choice in zip(encoded, choices):
         tile.choice = choice
-    if precision is Precision.q:
-        quant_model = _recode_chosen(encoded, quant_model)
-    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
+    latent = _recode_chosen(encoded, latent)
+    layout = latent.layout
     header = Header(
         model_id=model.model_id,
         weights_sha256=model.weights_sha256,
-        precision=precision,
-        subsampling_dist_m=float(model.config.subsampling_dist),
-        tile_size=tuple(float(v) for v in tile_size),
+        precision=latent.precision,
+        subsampling_dist_m=layout.subsampling_dist_m,
+        tile_size=layout.tile_size,
         origin=tuple(float(v) for v in origin),
         n_points=n_points,
         n_tiles=len(encoded),
-        n_features=int(model.config.embedding_dim),
+        n_features=layout.n_features,
         raw_step_m=RAW_STEP_M,
-        quant_model=quant_model,
+        latent=latent,
         default_count=DefaultCount.native,
     )
     section = None if schema is None else AttributeSection(schema, [tile.attributes for tile in encoded if schema.specs])
@@ -426,48 +416,27 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
 
 
 def _code_network_candidates(encoded: list[_EncodedTile], model, precision: Precision, position_step_m: float | None,
-                             feature_step_std: float) -> QuantModel | None:
-    """Code every network tile (q: with a quantiser and histograms fitted over all of them) and add its candidate:
-    the payload's size and the D_e of the network's output for the unquantised embedding, measured while the tile
-    was in memory (the embedding coding adds 0.4-2.4 % to it, README)."""
+                             feature_step_std: float) -> LatentCodec:
+    """Code every network tile with the precision's latent codec fitted over all of them (q: quantiser and
+    histograms) and add its candidate: the payload's size and the D_e of the network's output for the unquantised
+    embedding, measured while the tile was in memory (the embedding coding adds 0.4-2.4 % to it, README)."""
     network_tiles = [tile for tile in encoded if tile.points is not None]
-    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
-    quant_model = None
-    if precision is Precision.q:
-        quant_model = _fit_quant_model(network_tiles, model, position_step_m, feature_step_std)
-        payloads = [quant_model.encode(q) for q in _quantised(network_tiles, quant_model)]
-    else:
-        payloads = [encode_float(tile.points, tile.features, precision, tile_size) for tile in network_tiles]
-    for tile, payload in zip(network_tiles, payloads):
+    layout = LatentLayout(float(model.config.subsampling_dist), tuple(float(v) for v in model.config.tile_size),
+                          int(model.config.embedding_dim))
+    latent = LATENT_CODECS[precision].fit([(tile.points, tile.features) for tile in network_tiles], layout,
+                                          position_step_m=position_step_m, feature_step_std=feature_step_std)
+    for tile in network_tiles:
+        payload = latent.encode(tile.points, tile.features)
         tile.candidates.append(Candidate(TileCoding.network, payload, len(payload), tile.network_d_e, "network"))
-    return quant_model
+    return latent
 
 
-def _fit_quant_model(network_tiles: list[_EncodedTile], model, position_step_m: float | None,
-                     feature_step_std: float) -> QuantModel:
-    """A map-wide q quantiser and histograms fitted over the given network tiles."""
-    n_features = int(model.config.embedding_dim)
-    features = np.concatenate([t.features for t in network_tiles] or [np.zeros((0, n_features), np.float32)])
-    r_s = float(model.config.subsampling_dist)
-    if position_step_m is None:
-        position_step_m = DEFAULT_POSITION_STEP_RS * r_s
-    quantiser = Quantiser.fit(features, position_step_m, feature_step_std)
-    grid = CellGrid(r_s, tuple(float(v) for v in model.config.tile_size))
-    quantised = [quantise(tile.points, tile.features, grid, quantiser) for tile in network_tiles]
-    return QuantModel.fit(quantised, grid, quantiser)
-
-
-def _quantised(network_tiles: list[_EncodedTile], quant_model: QuantModel) -> list:
-    return [quantise(tile.points, tile.features, quant_model.grid, quant_model.quantiser) for tile in network_tiles]
-
-
-def _recode_chosen(encoded: list[_EncodedTile], quant_model: QuantModel) -> QuantModel:
-    """Refit the q histograms over the tiles that kept the network (same quantiser, so the same decoded points)
-    and code those tiles with them."""
+def _recode_chosen(encoded: list[_EncodedTile], latent: LatentCodec) -> LatentCodec:
+    """Refit the latent codec over the tiles that kept the network (`LatentCodec.refit`: same quantisation, so the
+    same decoded points) and code those tiles with it."""
     chosen = [tile for tile in encoded if tile.choice.coding is TileCoding.network]
-    quantised = _quantised(chosen, quant_model)
-    refitted = QuantModel.fit(quantised, quant_model.grid, quant_model.quantiser)
-    for tile, q in zip(chosen, quantised):
-        payload = refitted.encode(q)
+    refitted = latent.refit([(tile.points, tile.features) for tile in chosen])
+    for tile in chosen:
+        payload = refitted.encode(tile.points, tile.features)
         tile.choice = Candidate(TileCoding.network, payload, len(payload), tile.choice.d_e, tile.choice.label)
     return refitted

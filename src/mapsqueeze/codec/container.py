@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from mapsqueeze.codec.attributes import AttributeSchema
-from mapsqueeze.codec.embedding import CellGrid, Precision, QuantModel
+from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
+from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.rawtile import axis_bits
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.bounds import bounding_box
@@ -77,12 +78,12 @@ class Header:
     n_tiles: int
     n_features: int  # embedding feature channels
     raw_step_m: float  # quantisation step of raw tiles (metres)
-    quant_model: QuantModel | None = None  # precision q only
+    latent: LatentCodec | None = None  # the precision's latent codec with its map-wide state (q: the histograms)
     default_count: DefaultCount = DefaultCount.native
 
     @property
-    def grid(self) -> CellGrid:
-        return CellGrid(self.subsampling_dist_m, self.tile_size)
+    def layout(self) -> LatentLayout:
+        return LatentLayout(self.subsampling_dist_m, self.tile_size, self.n_features)
 
     def serialise(self) -> bytes:
         writer = ByteWriter()
@@ -94,8 +95,7 @@ class Header:
         writer.raw(bytes.fromhex(self.weights_sha256))
         writer.pack("Bd3d3dQIBdB", self.precision, self.subsampling_dist_m, *self.tile_size, *self.origin,
                     self.n_points, self.n_tiles, self.n_features, self.raw_step_m, self.default_count)
-        if self.precision is Precision.q:
-            self.quant_model.write(writer)
+        self.latent.write(writer)
         return writer.getvalue()
 
     @classmethod
@@ -136,11 +136,7 @@ class Header:
             raise reader.fail(f"{n_features} embedding channels")
         header = cls(model_id, sha, precision, r_s, tile_size, origin, n_points, n_tiles, n_features, raw_step,
                      default_count=default_count)
-        if precision is Precision.q:
-            quant_model = QuantModel.read(reader, header.grid)
-            if len(quant_model.features) != n_features:
-                raise reader.fail("quantiser channel count differs from the embedding's")
-            header = dataclasses.replace(header, quant_model=quant_model)
+        header = dataclasses.replace(header, latent=LATENT_CODECS[precision].read(reader, header.layout))
         reader.expect_end()
         return header
 

@@ -21,7 +21,6 @@ from mapsqueeze.codec.container import (
     frame_origin,
     open_container,
 )
-from mapsqueeze.codec.embedding import Precision, decode_float, dequantise
 from mapsqueeze.codec.executor import open_executor
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.rawtile import decode_raw_tile
@@ -106,13 +105,7 @@ def check_model(model, header: Header, name: str) -> None:
 
 def _embedding_from_payload(header: Header, entry: TileEntry, payload: bytes, label: str
                             ) -> tuple[np.ndarray, np.ndarray]:
-    if header.precision is Precision.q:
-        quant_model = header.quant_model
-        points, features = dequantise(quant_model.decode(payload, entry.n_points, label), quant_model.grid,
-                                      quant_model.quantiser)
-    else:
-        points, features = decode_float(payload, header.precision, np.asarray(header.tile_size), header.n_features,
-                                        entry.n_points, label)
+    points, features = header.latent.decode(payload, entry.n_points, label)
     if len(points) == 0:
         raise ContainerError(f"{label}: network payload holds no embedding points")
     return points, features

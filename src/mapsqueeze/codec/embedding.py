@@ -1,9 +1,6 @@
-"""Coding of one tile's embedding (points + features) at three precisions.
+"""The precisions of the embedding coding and the q lattice (the latent codecs themselves are in `latent`).
 
-- f32: raw little-endian float32, 24 bytes per embedding point (3-D features).
-- f16: the paper's float16 storage, 12 bytes per point; positions are stored as fractions of the tile size,
-  which float16 resolves to 1-2 cm (metres in float16 would only resolve 3 cm near 40 m).
-- q:   positions split into their cell of the r_s grid (the embedding points come from grid subsampling at r_s, so
+q: positions split into their cell of the r_s grid (the embedding points come from grid subsampling at r_s, so
   cells are nearly unique) and an offset from the cell centre quantised with a fixed step; features turned onto
   their map-wide principal axes and quantised with one fitted step (`Quantiser`). Occupied cells are coded as
   gaps between sorted cell indices (x fastest), offsets and features with histograms fitted once per file
@@ -240,31 +237,3 @@ class QuantModel:
         if count and not (cells[0] >= 0 and cells[-1] < self.grid.n_cells):
             raise reader.fail("embedding cell outside the tile grid")
         return QuantisedEmbedding(cells, offsets, features)
-
-
-# --- f32 / f16 ----------------------------------------------------------------------------------------------------
-
-def encode_float(points: np.ndarray, features: np.ndarray, precision: Precision, tile_size: np.ndarray) -> bytes:
-    """f32/f16 payload: varint M, then M rows of (x, y, z, features) little-endian (f16: x, y, z / tile size)."""
-    writer = ByteWriter()
-    writer.varint(len(points))
-    if precision is Precision.f32:
-        rows = np.column_stack([points, features]).astype("<f4")
-    else:
-        rows = np.column_stack([np.asarray(points, np.float64) / tile_size, features]).astype("<f2")
-    writer.raw(rows.tobytes())
-    return writer.getvalue()
-
-
-def decode_float(payload: bytes, precision: Precision, tile_size: np.ndarray, n_features: int, max_points: int,
-                 what: str) -> tuple[np.ndarray, np.ndarray]:
-    reader = ByteReader(payload, what)
-    count = reader.varint(limit=max_points + 1)
-    dtype = np.dtype("<f4") if precision is Precision.f32 else np.dtype("<f2")
-    rows = np.frombuffer(reader.raw(count * (3 + n_features) * dtype.itemsize), dtype=dtype)
-    reader.expect_end()
-    rows = rows.reshape(count, 3 + n_features).astype(np.float32)
-    points = rows[:, :3] if precision is Precision.f32 else (rows[:, :3] * tile_size).astype(np.float32)
-    if not np.isfinite(rows).all():
-        raise reader.fail("non-finite embedding value")
-    return np.ascontiguousarray(points), np.ascontiguousarray(rows[:, 3:])
