@@ -10,16 +10,14 @@ import mapsqueeze
 from mapsqueeze.codec import executor as executor_module
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import read_points, write_points
-from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
+from mapsqueeze.model import load_model
 
 UTM = np.array([500_000.123, 4_000_000.456, 50.0])
-TILE = (8.0, 8.0, 4.0)
 
 
 @pytest.fixture(scope="module")
-def model_dir(tmp_path_factory):
-    config = ModelConfig.for_rate("e1", tile_size=TILE, map_size=8.0, max_input_points=2000)
-    return save_model(build_model(config, seed=3), tmp_path_factory.mktemp("model") / "tiny")
+def model_dir(tiny_model_dir):
+    return tiny_model_dir
 
 
 @pytest.fixture(scope="module")

@@ -22,18 +22,15 @@ from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.morton import coarse_to_fine_subset
 from mapsqueeze.io import write_points
 from mapsqueeze.metrics import evaluate
-from mapsqueeze.model import ModelConfig, build_model, save_model
 from mapsqueeze.view import CloudInput, ViewInput, build_scene, load_cloud, render_page, write_view
 from mapsqueeze.view.browser import find_chromium, screenshot
 
 UTM = np.array([500_000.0, 4_000_000.0, 50.0])
-TILE = (8.0, 8.0, 4.0)
 
 
 @pytest.fixture(scope="module")
-def model_dir(tmp_path_factory):
-    config = ModelConfig.for_rate("e1", tile_size=TILE, map_size=8.0, max_input_points=2000)
-    return save_model(build_model(config, seed=1), tmp_path_factory.mktemp("model") / "tiny")
+def model_dir(tiny_model_dir):
+    return tiny_model_dir
 
 
 @pytest.fixture(scope="module")
