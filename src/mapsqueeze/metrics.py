@@ -215,7 +215,7 @@ def overlap_warning(gt: np.ndarray, rec: np.ndarray, d_e: float) -> str | None:
 
 def nearest_original_values(gt: np.ndarray, gt_values: np.ndarray, rec: np.ndarray) -> np.ndarray:
     """For each reconstructed point, the attribute value of its nearest ground-truth point."""
-    return np.asarray(gt_values)[cKDTree(gt).query(rec, k=1)[1]]
+    return np.asarray(gt_values)[_kdtree(gt).query(rec, k=1)[1]]
 
 
 def attribute_error(gt: np.ndarray, gt_values: np.ndarray, rec: np.ndarray, rec_values: np.ndarray) -> float:

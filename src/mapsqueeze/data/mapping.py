@@ -6,13 +6,14 @@ The functions are general so that real sequences and the LiDAR simulator share t
 
 Dataset layout: `manifest.json` plus one binary PLY per submap holding float32 x, y, z in metres *relative to the
 submap's origin* (its box's lower corner, float64 in the manifest), so world coordinates of any size (UTM) keep
-sub-millimetre precision: world = origin + local.
+sub-millimetre precision: world = origin + local. Simulated submaps add per-point `intensity` (float32),
+`label` and `instance` (uint16) properties; training reads x, y, z only.
 """
 
 import json
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -41,12 +42,19 @@ TEST_SOURCES = frozenset({"kitti-08"})
 """Sources whose submaps form the test split: KITTI sequence 08, the paper's test sequence."""
 
 
+def range_mask(
+    points_sensor: np.ndarray, min_range: float = MIN_RANGE_M, max_range: float = MAX_RANGE_M
+) -> np.ndarray:
+    """(N,) bool: which points of a scan (sensor frame, metres) lie at a distance in (min_range, max_range)."""
+    distances = np.linalg.norm(points_sensor, axis=1)
+    return (distances > min_range) & (distances < max_range)
+
+
 def preprocess_scan(
     points_sensor: np.ndarray, min_range: float = MIN_RANGE_M, max_range: float = MAX_RANGE_M
 ) -> np.ndarray:
     """Points of a scan (sensor frame, metres) whose distance to the sensor is in (min_range, max_range)."""
-    distances = np.linalg.norm(points_sensor, axis=1)
-    return points_sensor[(distances > min_range) & (distances < max_range)]
+    return points_sensor[range_mask(points_sensor, min_range, max_range)]
 
 
 def transform(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -125,13 +133,24 @@ def crop_submap(
     dz: float = SUBMAP_DZ_M,
 ) -> np.ndarray:
     """Map points in the half-open box `submap_bounds(center_xyz, size, dz)` ([lower, upper) per axis)."""
+    return map_points[crop_mask(map_points, center_xyz, size, dz)]
+
+
+def crop_mask(
+    map_points: np.ndarray,
+    center_xyz: np.ndarray,
+    size: float | Iterable[float] = TILE_SIZE_M,
+    dz: float = SUBMAP_DZ_M,
+) -> np.ndarray:
+    """(M,) bool: which map points `crop_submap` keeps."""
     lower, upper = submap_bounds(center_xyz, size, dz)
-    return map_points[np.all((map_points >= lower) & (map_points < upper), axis=1)]
+    return np.all((map_points >= lower) & (map_points < upper), axis=1)
 
 
 @dataclass
 class Submap:
-    """A box of a map: world points (float64 metres) plus where it came from. `pose` is None for grid tiles."""
+    """A box of a map: world points (float64 metres) plus where it came from. `pose` is None for grid tiles;
+    `attributes`: per-point fields (name -> (N,) array, e.g. simulated intensity, label, instance)."""
 
     points: np.ndarray
     center: np.ndarray  # key-pose position, or the box centre of a grid tile (metres)
@@ -140,6 +159,7 @@ class Submap:
     index: int  # position among the source's submaps
     pose: np.ndarray | None = None  # (4, 4) key pose
     split: str = ""  # train / val / test; filled by `assign_split` when empty
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.split = self.split or assign_split(self.source, self.index)
@@ -221,8 +241,8 @@ def _read_manifest(path: Path) -> dict:
 
 
 def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: dict) -> Path:
-    """Write each submap as `<source>-<index>.ply` (float32 x, y, z relative to its origin) and update
-    `manifest.json`; returns the manifest path. All writes are atomic.
+    """Write each submap as `<source>-<index>.ply` (float32 x, y, z relative to its origin, then its attributes)
+    and update `manifest.json`; returns the manifest path. All writes are atomic.
 
     The manifest keeps the entries of sources not written now, so sequences can be added one call at a time;
     a source written again replaces its previous entries. `meta` (JSON-serialisable, e.g. the build
@@ -245,7 +265,7 @@ def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: d
             raise DataError(f"submap {submap.source}/{submap.index}: unknown split {submap.split!r}")
         name = _file_name(submap.source, submap.index)
         size = submap.bounds[1] - submap.bounds[0]
-        write_points(out_dir / name, to_local(submap.points, submap.origin, size))
+        write_points(out_dir / name, to_local(submap.points, submap.origin, size), attributes=submap.attributes)
         records.append(
             {
                 "file": name,

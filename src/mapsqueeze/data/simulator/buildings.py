@@ -6,6 +6,7 @@ import numpy as np
 from mapsqueeze.data.simulator.shapes import (
     Material,
     MeshBuilder,
+    Semantic,
     boxes,
     prism,
     quads,
@@ -32,7 +33,7 @@ def relief_facade(width: float, height: float, openings: list[tuple[float, float
         inside = ((cx > x0) & (cx < x1))[:, None] & ((cz > z0) & (cz < z1))[None, :]
         depth[inside] = d
         material[inside] = int(m)
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.BUILDING)
     i, k = np.meshgrid(np.arange(nx), np.arange(nz), indexing="ij")
     i, k = i.ravel(), k.ravel()
     d = depth[i, k]
@@ -78,7 +79,7 @@ def building(rng: np.random.Generator, length: float, depth: float, floors: int,
     `style`: "urban" (flat roof, parapet, shops possible), "house" (gable roof, eaves) or "industrial" (tall
     plain walls, large gates, few windows). The walls reach 0.5 m below z = 0 so that they meet sloping ground.
     """
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.BUILDING)
     ground_floor = rng.uniform(3.2, 4.5) if style == "urban" else rng.uniform(2.6, 3.2)
     upper_floor = rng.uniform(2.7, 3.4)
     height = ground_floor + (floors - 1) * upper_floor if style != "industrial" else rng.uniform(4.0, 9.0)

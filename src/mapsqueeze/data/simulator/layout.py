@@ -12,7 +12,7 @@ REACH_M = 28.0
 
 
 class Layout:
-    """Places objects along streets and collects them into one mesh."""
+    """Places objects along streets and collects them into one mesh; each placed object gets its own id."""
 
     def __init__(self, rng: np.random.Generator, preset: Preset, ground: Ground, route: np.ndarray):
         self.rng = rng
@@ -20,6 +20,12 @@ class Layout:
         self.ground = ground
         self.builder = MeshBuilder()
         self._route = cKDTree(route)
+        self._objects = 0
+
+    def new_object(self, countable: bool) -> int:
+        """A fresh object id: positive for countable objects (their instance id), negative for the others."""
+        self._objects += 1
+        return self._objects if countable else -self._objects
 
     def near_route(self, xy: np.ndarray, margin: float = 0.0) -> bool:
         return bool(self._route.query(np.atleast_2d(xy))[0].min() < REACH_M + margin)
@@ -56,5 +62,6 @@ class Layout:
         if z is not None:
             origin[2] = z
         turn = rotation_z(yaw)
-        self.builder.extend(part, rotation @ turn, origin + rotation @ np.asarray(shift))
+        self.builder.extend(part, rotation @ turn, origin + rotation @ np.asarray(shift),
+                            self.new_object(part.countable))
         return True

@@ -7,7 +7,7 @@ import numpy as np
 
 from mapsqueeze.data.simulator import buildings, objects
 from mapsqueeze.data.simulator.layout import REACH_M, Layout
-from mapsqueeze.data.simulator.shapes import MeshBuilder, boxes, tubes
+from mapsqueeze.data.simulator.shapes import MeshBuilder, Semantic, boxes, tubes
 from mapsqueeze.data.simulator.streets import FREE, SIDEWALK, Street
 
 
@@ -193,7 +193,7 @@ def _lot_noise_wall(layout: Layout, street: Street, side: int, s0: float, s1: fl
     t = street.corridor(side) + rng.uniform(1.0, 6.0)
     length = s1 - s0
     height = rng.uniform(2.5, 5.0)
-    wall = MeshBuilder()
+    wall = MeshBuilder(Semantic.OTHER_STRUCTURE)
     wall.add(boxes([[length / 2, 0.15, height / 2 - 0.3]], [[length, 0.3, height + 0.6]]))
     posts = np.arange(0.0, length, rng.uniform(3.0, 5.0))
     wall.add(boxes(np.column_stack([posts, np.full(len(posts), -0.1), np.full(len(posts), height / 2)]),
@@ -326,7 +326,7 @@ def utility_wires(layout: Layout, street: Street, side: int, s0: float, s1: floa
         for offset in offsets:
             start, end = a + offset * arm_a, b + offset * arm_b
             points = start + (end - start) * u - [0.0, 0.0, 2.4] * u * (1 - u)  # 0.6 m sag
-            layout.builder.add(tubes(points[:-1], points[1:], 0.012, 3))
+            layout.builder.add(tubes(points[:-1], points[1:], 0.012, 3), label=Semantic.OTHER_STRUCTURE)
 
 
 def open_spans(street: Street, side: int, s0: float, s1: float) -> list[tuple[float, float]]:

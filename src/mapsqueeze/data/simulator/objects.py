@@ -10,6 +10,7 @@ import numpy as np
 from mapsqueeze.data.simulator.shapes import (
     Material,
     MeshBuilder,
+    Semantic,
     boxes,
     prism,
     quads,
@@ -38,7 +39,7 @@ def vehicle(rng: np.random.Generator, kind: str | None = None) -> tuple[MeshBuil
     }[kind]
     scale = rng.uniform(0.93, 1.07, 5)
     length, width, belt, roof, clearance = np.array(dims) * scale
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.TRUCK if kind == "truck" else Semantic.CAR, countable=True)
     half = length / 2
     bumper = clearance + 0.12
     body = np.array([[-half, bumper], [-half + 0.15, clearance], [half - 0.15, clearance], [half, bumper],
@@ -114,7 +115,7 @@ def tree(rng: np.random.Generator, conifer: bool = False, scale: float = 1.0) ->
     The crown is a union of 3-8 random ellipsoids filled with small randomly oriented leaf triangles, most in
     their outer shell, so some rays reach the trunk and the far side while others stop at the first leaves.
     """
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.TRUNK, countable=True)
     height = rng.uniform(5.0, 14.0) * scale
     trunk_radius = rng.uniform(0.08, 0.3) * np.sqrt(scale)
     crown_base = rng.uniform(0.2, 0.5) * height if not conifer else rng.uniform(0.05, 0.3) * height
@@ -150,13 +151,14 @@ def tree(rng: np.random.Generator, conifer: bool = False, scale: float = 1.0) ->
         builder.add(tubes(np.array(branch_starts), np.array(branch_ends), trunk_radius * 0.35, 5,
                           trunk_radius * 0.1))
     leaves = np.concatenate(leaves)
-    builder.add(random_triangles(leaves, rng.uniform(0.6, 1.4, len(leaves)) * leaf_size, rng), Material.VEGETATION)
+    builder.add(random_triangles(leaves, rng.uniform(0.6, 1.4, len(leaves)) * leaf_size, rng), Material.VEGETATION,
+                Semantic.VEGETATION)
     return builder
 
 
 def bush(rng: np.random.Generator, radius: float) -> MeshBuilder:
     """A bush of 1-4 overlapping leafy clumps on the ground around the origin (about `radius` metres)."""
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.VEGETATION, countable=True)
     density = rng.uniform(60.0, 160.0)
     leaves = []
     for _ in range(int(rng.integers(1, 5))):
@@ -171,7 +173,7 @@ def bush(rng: np.random.Generator, radius: float) -> MeshBuilder:
 
 def hedge(rng: np.random.Generator, length: float) -> MeshBuilder:
     """A trimmed hedge along x from 0 to `length`, starting at y = 0: a leafy box with a fuzzy surface."""
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.VEGETATION)
     height = rng.uniform(0.8, 2.6)
     thickness = rng.uniform(0.5, 1.3)
     density = rng.uniform(120.0, 220.0)
@@ -198,7 +200,7 @@ def hedge(rng: np.random.Generator, length: float) -> MeshBuilder:
 
 def tall_grass(rng: np.random.Generator, size_x: float, size_y: float, height: float) -> MeshBuilder:
     """Weeds / long grass over a size_x by size_y patch (origin at its corner), up to `height` metres."""
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.TERRAIN)
     n = int(size_x * size_y * rng.uniform(20.0, 60.0))
     centres = np.column_stack([rng.random(n) * size_x, rng.random(n) * size_y, rng.random(n) ** 1.5 * height])
     builder.add(random_triangles(centres, rng.uniform(0.05, 0.15, n), rng), Material.VEGETATION)
@@ -212,7 +214,7 @@ FENCE_KINDS = ("pickets", "bars", "boards", "chainlink", "wall", "wall_fence", "
 
 def fence(rng: np.random.Generator, length: float, kind: str) -> MeshBuilder:
     """A fence or wall along x from 0 to `length` at y = 0 (see FENCE_KINDS); thin parts are real thin geometry."""
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.FENCE)
     height = {"pickets": (0.8, 1.4), "bars": (1.0, 2.2), "boards": (1.2, 2.0), "chainlink": (1.2, 2.5),
               "wall": (0.4, 2.4), "wall_fence": (0.4, 0.9), "post_wire": (1.0, 1.4), "railing": (0.9, 1.2)}[kind]
     height = rng.uniform(*height)
@@ -259,7 +261,7 @@ def fence(rng: np.random.Generator, length: float, kind: str) -> MeshBuilder:
 
 def guard_rail(length: float) -> MeshBuilder:
     """A highway W-beam guard rail along x: posts every 2 m and a 0.3 m beam at 0.55-0.85 m."""
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.FENCE)
     posts = np.arange(0.0, length, 2.0)
     builder.add(boxes(np.column_stack([posts, np.full(len(posts), 0.1), np.full(len(posts), 0.25)]),
                       [0.1, 0.15, 1.0]))
@@ -272,7 +274,7 @@ def jersey_barrier(length: float) -> MeshBuilder:
     """A concrete median barrier along x (0.8 m high, sloped sides), centred on y = 0."""
     profile = np.array([[-0.3, 0.0], [0.3, 0.0], [0.2, 0.3], [0.1, 0.8], [-0.1, 0.8], [-0.2, 0.3]])
     vertices, faces = prism(profile, length)
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.OTHER_STRUCTURE)
     builder.add((vertices[:, [1, 0, 2]] + [length / 2, 0.0, 0.0], faces[:, ::-1]))
     return builder
 
@@ -284,7 +286,7 @@ POLE_KINDS = ("street_light", "sign", "traffic_light", "utility", "bollard", "po
 
 def pole(rng: np.random.Generator, kind: str) -> MeshBuilder:
     """A pole-like object at the origin; arms and signs point to -y (over the street)."""
-    builder = MeshBuilder()
+    builder = MeshBuilder(Semantic.POLE, countable=True)
     if kind == "street_light":
         height = rng.uniform(4.5, 9.0)
         radius = rng.uniform(0.06, 0.12)
@@ -298,23 +300,25 @@ def pole(rng: np.random.Generator, kind: str) -> MeshBuilder:
         size = rng.uniform(0.45, 0.9)
         shape = rng.integers(3)
         if shape == 0:  # rectangle
-            builder.add(boxes([[0, -0.05, height - size / 2]], [[size, 0.02, size * rng.uniform(0.6, 1.2)]]))
+            builder.add(boxes([[0, -0.05, height - size / 2]], [[size, 0.02, size * rng.uniform(0.6, 1.2)]]),
+                        label=Semantic.TRAFFIC_SIGN)
         else:  # disc or triangle as a thin prism
             sides = 12 if shape == 1 else 3
             angles = np.linspace(0, 2 * np.pi, sides, endpoint=False) + np.pi / 2
             outline = np.column_stack([np.cos(angles), np.sin(angles)]) * size / 2 + [0, height - size / 2]
             vertices, faces = prism(outline, 0.02)
-            builder.add((vertices + [0.0, -0.05, 0.0], faces))
+            builder.add((vertices + [0.0, -0.05, 0.0], faces), label=Semantic.TRAFFIC_SIGN)
         if rng.random() < 0.3:
-            builder.add(boxes([[0, -0.05, height - size - 0.25]], [[size * 0.9, 0.02, 0.3]]))
+            builder.add(boxes([[0, -0.05, height - size - 0.25]], [[size * 0.9, 0.02, 0.3]]),
+                        label=Semantic.TRAFFIC_SIGN)
     elif kind == "traffic_light":
         height = rng.uniform(3.0, 4.5)
         builder.add(tubes([[0, 0, -0.2]], [[0, 0, height]], 0.07, 8))
-        builder.add(boxes([[0, -0.2, height - 0.6]], [[0.35, 0.3, 1.0]]))
+        builder.add(boxes([[0, -0.2, height - 0.6]], [[0.35, 0.3, 1.0]]), label=Semantic.TRAFFIC_SIGN)
         if rng.random() < 0.4:
             reach = rng.uniform(3.0, 6.0)
             builder.add(tubes([[0, 0, height - 0.2]], [[0, -reach, height - 0.2]], 0.06, 6))
-            builder.add(boxes([[0, -reach, height - 0.8]], [[0.35, 0.3, 1.0]]))
+            builder.add(boxes([[0, -reach, height - 0.8]], [[0.35, 0.3, 1.0]]), label=Semantic.TRAFFIC_SIGN)
     elif kind == "utility":
         height = rng.uniform(7.0, 10.0)
         builder.add(tubes([[0, 0, -0.3]], [[0, 0, height]], rng.uniform(0.1, 0.16), 8, 0.09))
@@ -328,11 +332,14 @@ def pole(rng: np.random.Generator, kind: str) -> MeshBuilder:
 
 CLUTTER_KINDS = ("bins", "bike", "bench", "cabinet", "planter", "bike_rack", "shelter", "column", "mailbox", "stones",
                  "person")
+_CLUTTER_LABELS = {kind: Semantic.OTHER_OBJECT for kind in CLUTTER_KINDS} | {
+    "bike": Semantic.BICYCLE, "person": Semantic.PERSON, "shelter": Semantic.OTHER_STRUCTURE,
+    "column": Semantic.OTHER_STRUCTURE}
 
 
 def clutter(rng: np.random.Generator, kind: str) -> MeshBuilder:
     """Small street clutter at the origin (see CLUTTER_KINDS)."""
-    builder = MeshBuilder()
+    builder = MeshBuilder(_CLUTTER_LABELS[kind], countable=True)
     if kind == "bins":
         for i in range(int(rng.integers(1, 4))):
             w = rng.uniform(0.5, 0.75)

@@ -4,7 +4,8 @@ Each beam is traced to its first surface. What happens there depends on the surf
 passes on (gaps between leaves, window glass, wire mesh: the ray is traced further from just behind the hit),
 or is lost. Returned ranges get the sensor's range noise, the laser's calibration offset and the material's
 own scatter; beams also jitter within their divergence and drop out at random and at grazing incidence.
-Beams that hit nothing give no return (no sky points).
+Beams that hit nothing give no return (no sky points). `sweep` also gives each return its intensity
+(`reflectance.intensity`), the semantic class and the instance id of the face it came from.
 """
 
 import warnings
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from mapsqueeze.data.simulator.reflectance import face_reflectivity, intensity
 from mapsqueeze.data.simulator.sensors import SensorInstance
 from mapsqueeze.data.simulator.shapes import Material
 from mapsqueeze.errors import SimulationError
@@ -42,10 +44,32 @@ MAX_PASSES = 4
 _STEP_PAST_M = 0.01  # a passing beam continues this far behind the surface it went through
 
 
-class Raycaster:
-    """First-hit queries on one triangle mesh; Embree (embreex) when available, trimesh's numpy caster else."""
+@dataclass(frozen=True)
+class Sweep:
+    """The returns of one sweep: points (N, 3) float64 metres in the sensor frame, intensity (N,) float32 in
+    [0, 1), semantic label (N,) uint16 (`shapes.Semantic` ids) and instance id (N,) uint16 (0: not a countable
+    object)."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, materials: np.ndarray):
+    points: np.ndarray
+    intensity: np.ndarray
+    label: np.ndarray
+    instance: np.ndarray
+
+    def attributes(self) -> dict[str, np.ndarray]:
+        """The per-point attributes by the names the io layer uses (as a SemanticKITTI scan reads)."""
+        return {"intensity": self.intensity, "label": self.label, "instance": self.instance}
+
+
+class Raycaster:
+    """First-hit queries on one triangle mesh; Embree (embreex) when available, trimesh's numpy caster else.
+
+    Per face: `materials` (`shapes.Material`), and optionally `labels` (`shapes.Semantic`, default unlabeled),
+    object ids (> 0 countable objects) and `reflectivity` (default: each class's median reflectivity).
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, materials: np.ndarray,
+                 labels: np.ndarray | None = None, objects: np.ndarray | None = None,
+                 reflectivity: np.ndarray | None = None):
         if len(faces) == 0:
             raise SimulationError("the scene has no triangles")
         self.mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False, validate=False)
@@ -53,6 +77,11 @@ class Raycaster:
         normals = np.cross(vertices[faces[:, 1]] - self._corners, vertices[faces[:, 2]] - self._corners)
         self.normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         self.materials = np.asarray(materials, dtype=np.int8)
+        self.labels = np.zeros(len(faces), np.uint16) if labels is None else np.asarray(labels, dtype=np.uint16)
+        objects = np.zeros(len(faces), np.int32) if objects is None else np.asarray(objects)
+        self.instances = np.maximum(objects, 0).astype(np.uint16)
+        self.reflectivity = (face_reflectivity(self.labels, objects, self.materials, None) if reflectivity is None
+                             else np.asarray(reflectivity, dtype=np.float64))
         responses = [MATERIAL_RESPONSE[Material(code)] for code in range(len(Material))]
         self._returns = np.array([r.returns for r in responses])
         self._passes = np.array([r.passes for r in responses])
@@ -94,6 +123,19 @@ class Raycaster:
 
         Returns beyond `max_range_m` (default the sensor's maximum range) are dropped.
         """
+        return self._trace(sensor, pose, rng, max_range_m)[0]
+
+    def sweep(self, sensor: SensorInstance, pose: np.ndarray, rng: np.random.Generator,
+              attribute_rng: np.random.Generator, max_range_m: float | None = None) -> Sweep:
+        """`scan`'s points (the same for the same `rng`) with their intensity, label and instance id; the
+        intensity noise comes from `attribute_rng` alone."""
+        points, face, cosine, distance = self._trace(sensor, pose, rng, max_range_m)
+        return Sweep(points, intensity(self.reflectivity[face], cosine, distance, attribute_rng),
+                     self.labels[face], self.instances[face])
+
+    def _trace(self, sensor: SensorInstance, pose: np.ndarray, rng: np.random.Generator,
+               max_range_m: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(points (N, 3) sensor frame, face index (N,), |cos incidence| (N,), distance travelled (N,) metres)."""
         model = sensor.model
         max_range = model.max_range_m if max_range_m is None else min(max_range_m, model.max_range_m)
         directions, lasers = sensor.beams(rng)
@@ -128,8 +170,8 @@ class Raycaster:
         material = self.materials[face]
         cosine = np.abs(np.einsum("ij,ij->i", self.normals[face], world[hit]))
         lost = rng.random(len(hit)) < model.dropout + 0.5 * np.clip(1.0 - cosine / 0.1, 0.0, 1.0)
-        hit, material = hit[~lost], material[~lost]
+        hit, material, face, cosine = hit[~lost], material[~lost], face[~lost], cosine[~lost]
         ranges = (measured[hit] + rng.normal(0.0, model.range_noise_m, len(hit)) + sensor.range_offsets_m[lasers[hit]]
                   + rng.normal(0.0, 1.0, len(hit)) * self._scatter[material]
                   - np.abs(rng.normal(0.0, 1.0, len(hit))) * self._early[material])
-        return directions[hit] * ranges[:, None]
+        return directions[hit] * ranges[:, None], face, cosine, measured[hit]

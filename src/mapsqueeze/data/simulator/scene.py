@@ -1,9 +1,9 @@
 """Procedural driving scenes: a main street with junctions, lots along it (building rows, houses with gardens,
 parks, parking, industry, fields, forest, noise walls), parked cars, street furniture and terrain.
 
-`build_scene(preset, drive_length_m, rng)` returns a `Scene`: one triangle mesh with a material per face, the
-street the car drives along and the lane it keeps. Only what a sensor on the driven stretch can see within
-the 20 m mapping range is built (objects up to REACH_M from the route).
+`build_scene(preset, drive_length_m, rng)` returns a `Scene`: one triangle mesh with a material, a semantic class
+and an object id per face, the street the car drives along and the lane it keeps. Only what a sensor on the driven
+stretch can see within the 20 m mapping range is built (objects up to REACH_M from the route).
 """
 
 from dataclasses import dataclass
@@ -20,6 +20,9 @@ from mapsqueeze.errors import SimulationError
 LEAD_M = 30.0
 """Street built before the start and after the end of the driven stretch."""
 
+MAX_INSTANCE = 0xFFFF
+"""Instance ids are stored in 16 bits, as in SemanticKITTI label files."""
+
 
 @dataclass
 class Scene:
@@ -28,6 +31,8 @@ class Scene:
     vertices: np.ndarray  # (V, 3) float64
     faces: np.ndarray  # (F, 3) int64
     materials: np.ndarray  # (F,) int8, `shapes.Material` codes
+    labels: np.ndarray  # (F,) uint16, `shapes.Semantic` ids
+    objects: np.ndarray  # (F,) int32 object ids: > 0 countable objects (instances), < 0 other objects
     street: Street
     drive_start_m: float
     drive_end_m: float
@@ -73,13 +78,14 @@ def build_scene(preset: Preset | str, drive_length_m: float, rng: np.random.Gene
                     roughness_m=rng.uniform(0.01, 0.04), reach_m=REACH_M)
     layout = Layout(rng, preset, ground, route)
     for street in streets:
-        layout.builder.extend(street.mesh(), np.eye(3), np.zeros(3))
-    layout.builder.extend(ground.mesh(), np.eye(3), np.zeros(3))
+        layout.builder.extend(street.mesh(), np.eye(3), np.zeros(3), layout.new_object(False))
+    layout.builder.extend(ground.mesh(), np.eye(3), np.zeros(3), layout.new_object(False))
     if preset.median:  # in 20 m pieces that follow the curves
         for a in np.arange(0.0, length - 1.0, 20.0):
             rotation, origin = layout.frame(main, 1, a, 0.0)
             origin[2] = float(main.at(a)[2])
-            layout.builder.extend(objects.jersey_barrier(min(20.0, length - a)), rotation, origin)
+            layout.builder.extend(objects.jersey_barrier(min(20.0, length - a)), rotation, origin,
+                                  layout.new_object(False))
     for street in streets:
         for side in (0, 1):
             fill_side(layout, street, side, 0.0, street.length)
@@ -87,8 +93,10 @@ def build_scene(preset: Preset | str, drive_length_m: float, rng: np.random.Gene
                 furnish(layout, street, side, a, b, street.parking[side])
     if rng.random() < (0.2 if preset.name in ("urban", "highway") else 0.5):
         utility_wires(layout, main, int(rng.integers(2)), 0.0, length)
-    vertices, faces, materials = layout.builder.build()
-    return Scene(vertices, faces, materials, main, drive_start, drive_end,
+    vertices, faces, materials, labels, object_ids = layout.builder.build()
+    if object_ids.max() > MAX_INSTANCE:
+        raise SimulationError(f"{object_ids.max()} objects in one scene; instance ids go up to {MAX_INSTANCE}")
+    return Scene(vertices, faces, materials, labels, object_ids, main, drive_start, drive_end,
                  -(lane_width * (int(rng.integers(lanes)) + 0.5) + median / 2), preset.name)
 
 

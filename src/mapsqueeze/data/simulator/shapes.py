@@ -2,7 +2,8 @@
 
 Every primitive returns `(vertices (V, 3) float64, faces (F, 3) int64)` in metres; batch versions build many
 shapes at once (thousands of pickets or leaves cost one numpy call). `MeshBuilder` concatenates the parts and
-keeps one material code per face (see `Material`), which the ray caster uses for returns on glass and foliage.
+keeps per face a material code (see `Material`), which the ray caster uses for returns on glass and foliage, a
+semantic class (`Semantic`) and the id of the object the face belongs to.
 """
 
 from enum import IntEnum
@@ -32,6 +33,33 @@ class Material(IntEnum):
     GLASS = 2  # windows and windscreens: few returns, many rays pass through or are lost
     GRASS = 3  # grass and rough ground: returns scattered a few centimetres above the surface
     MESH = 4  # chain-link and wire-mesh fences: most rays pass through
+
+
+class Semantic(IntEnum):
+    """Semantic class of a face: SemanticKITTI's raw label ids (its `label` field, low 16 bits of a .label entry)."""
+
+    UNLABELED = 0
+    CAR = 10
+    BICYCLE = 11
+    TRUCK = 18
+    PERSON = 30
+    ROAD = 40
+    PARKING = 44
+    SIDEWALK = 48
+    BUILDING = 50
+    FENCE = 51
+    OTHER_STRUCTURE = 52
+    VEGETATION = 70
+    TRUNK = 71
+    TERRAIN = 72
+    POLE = 80
+    TRAFFIC_SIGN = 81
+    OTHER_OBJECT = 99
+
+    @property
+    def label_name(self) -> str:
+        """SemanticKITTI's name of the class (e.g. "traffic-sign")."""
+        return self.name.lower().replace("_", "-")
 
 
 def rotation_z(yaw: np.ndarray | float) -> np.ndarray:
@@ -150,31 +178,49 @@ def transformed(mesh: Mesh, rotation: np.ndarray, translation: np.ndarray) -> Me
 
 
 class MeshBuilder:
-    """Collects mesh parts with one material each; `build()` concatenates them into one indexed mesh."""
+    """Collects mesh parts with one material each; `build()` concatenates them into one indexed mesh.
 
-    def __init__(self) -> None:
-        self._parts: list[tuple[np.ndarray, np.ndarray, Material]] = []
+    `label` is the semantic class of parts added without one; `countable` marks an object whose placed copies
+    are instances (cars, trees, poles: `objects` ids > 0) rather than stuff (buildings, fences: ids < 0).
+    """
 
-    def add(self, mesh: Mesh, material: Material = Material.SOLID) -> None:
+    def __init__(self, label: Semantic = Semantic.UNLABELED, countable: bool = False) -> None:
+        self.label = label
+        self.countable = countable
+        # (vertices, faces, material, labels (F,) uint16, object ids (F,) int32)
+        self._parts: list[tuple[np.ndarray, np.ndarray, Material, np.ndarray, np.ndarray]] = []
+
+    def add(self, mesh: Mesh, material: Material = Material.SOLID, label: Semantic | np.ndarray | None = None,
+            object_id: int = 0) -> None:
+        """Add a part; `label`: its class, or one class per face (default the builder's `label`)."""
         vertices, faces = mesh
         if len(faces):
-            self._parts.append((np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), material))
+            labels = np.broadcast_to(np.asarray(self.label if label is None else label, dtype=np.uint16), len(faces))
+            self._parts.append((np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), material,
+                                labels, np.full(len(faces), object_id, np.int32)))
 
-    def extend(self, other: "MeshBuilder", rotation: np.ndarray, translation: np.ndarray) -> None:
-        """Add every part of `other`, rotated then translated (an object built in its own frame)."""
-        for vertices, faces, material in other._parts:
-            self.add(transformed((vertices, faces), rotation, translation), material)
+    def extend(self, other: "MeshBuilder", rotation: np.ndarray, translation: np.ndarray, object_id: int = 0) -> None:
+        """Add every part of `other`, rotated then translated (an object built in its own frame); a non-zero
+        `object_id` becomes the object id of all its faces."""
+        for vertices, faces, material, labels, objects in other._parts:
+            vertices, faces = transformed((vertices, faces), rotation, translation)
+            self._parts.append((vertices, faces, material, labels, np.full_like(objects, object_id) if object_id
+                                else objects))
 
     @property
     def n_faces(self) -> int:
-        return sum(len(faces) for _, faces, _ in self._parts)
+        return sum(len(part[1]) for part in self._parts)
 
-    def build(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(vertices (V, 3) float64, faces (F, 3) int64, materials (F,) int8)."""
+    def build(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(vertices (V, 3) float64, faces (F, 3) int64, materials (F,) int8, labels (F,) uint16 `Semantic`,
+        object ids (F,) int32: > 0 countable objects, < 0 other objects, 0 none)."""
         if not self._parts:
-            return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=np.int8)
-        offsets = np.cumsum([0] + [len(vertices) for vertices, _, _ in self._parts[:-1]])
-        vertices = np.concatenate([vertices for vertices, _, _ in self._parts])
-        faces = np.concatenate([faces + offset for (_, faces, _), offset in zip(self._parts, offsets)])
-        materials = np.concatenate([np.full(len(faces), int(material), np.int8) for _, faces, material in self._parts])
-        return vertices, faces, materials
+            return (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=np.int8),
+                    np.empty(0, dtype=np.uint16), np.empty(0, dtype=np.int32))
+        offsets = np.cumsum([0] + [len(part[0]) for part in self._parts[:-1]])
+        vertices = np.concatenate([part[0] for part in self._parts])
+        faces = np.concatenate([part[1] + offset for part, offset in zip(self._parts, offsets)])
+        materials = np.concatenate([np.full(len(part[1]), int(part[2]), np.int8) for part in self._parts])
+        labels = np.concatenate([part[3] for part in self._parts])
+        objects = np.concatenate([part[4] for part in self._parts])
+        return vertices, faces, materials, labels, objects

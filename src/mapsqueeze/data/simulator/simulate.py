@@ -4,10 +4,13 @@ Per scene: build the scene, drive its main street at a realistic speed (with sto
 one sensor unit, and for each key pose (every 15 m, `mapping.submap_centers`) aggregate a random number of
 scans (1 to ~100, at a random stride) with slightly wrong poses (`mapping.aggregate_map`: 2-20 m range filter,
 10 cm voxel filter), then crop the 40 x 40 x 15 m submap (`mapping.crop_submap`). Few-scan submaps keep ring
-patterns and occlusion shadows; many-scan submaps are dense, as in the paper's whole-sequence maps.
+patterns and occlusion shadows; many-scan submaps are dense, as in the paper's whole-sequence maps. Each point
+carries the mean intensity of its voxel's returns and their most frequent semantic label and instance id
+(`aggregate`), stored as the submap's `intensity`, `label` and `instance` fields.
 
 Every random draw comes from generators seeded by (seed, scene, ...), so a dataset depends only on its
-configuration, not on the number of worker processes or the order they finish in.
+configuration, not on the number of worker processes or the order they finish in. The attributes draw from
+generators of their own: the geometry is the same whether or not they are simulated.
 """
 
 import multiprocessing
@@ -23,15 +26,16 @@ from mapsqueeze.data.mapping import (
     SPLITS,
     VALIDATION_EVERY,
     Submap,
-    aggregate_map,
-    crop_submap,
-    preprocess_scan,
+    crop_mask,
+    range_mask,
     submap_bounds,
     submap_centers,
     write_dataset,
 )
+from mapsqueeze.data.simulator.aggregate import aggregate_labelled_map
 from mapsqueeze.data.simulator.presets import get_preset
 from mapsqueeze.data.simulator.raycast import Raycaster
+from mapsqueeze.data.simulator.reflectance import face_reflectivity
 from mapsqueeze.data.simulator.scene import Scene, build_scene
 from mapsqueeze.data.simulator.sensors import SensorInstance, get_sensor
 from mapsqueeze.errors import SimulationError
@@ -40,6 +44,10 @@ SCAN_RATE_HZ = 10.0
 SUBMAP_SPACING_M = 15.0
 WINDOW_MARGIN_M = 30.0
 """Drive before the first and after the last key pose, so that scan windows have scans on both sides."""
+
+ATTRIBUTE_STREAM = 2
+"""Seed component of the attribute generators: (seed, scene, 2) draws reflectivities, (seed, scene, 2, scan)
+intensity noise; the geometry draws from (seed, scene) and (seed, scene, 1, scan)."""
 
 MAX_WINDOW_M = 60.0
 """Scans more than ~30 m from the key pose add nothing to its 40 m box; strides keep windows within this span."""
@@ -190,10 +198,12 @@ def simulate_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
     first = int(np.searchsorted(travelled, WINDOW_MARGIN_M))
     keys = first + submap_centers(poses[first:], SUBMAP_SPACING_M)[:n_submaps]
-    raycaster = Raycaster(scene.vertices, scene.faces, scene.materials)
+    reflectivity = face_reflectivity(scene.labels, scene.objects, scene.materials,
+                                     np.random.default_rng((*seed, ATTRIBUTE_STREAM)))
+    raycaster = Raycaster(scene.vertices, scene.faces, scene.materials, scene.labels, scene.objects, reflectivity)
     speed = travelled[-1] / max(len(poses) - 1, 1) * SCAN_RATE_HZ
     low, high = config.scans_per_submap
-    cache: dict[int, np.ndarray] = {}
+    cache: dict[int, tuple[np.ndarray, dict[str, np.ndarray]]] = {}  # scan index -> (points, attributes)
     source = f"sim{config.seed}-{scene_index:05d}-{preset}-{sensor_name}"
     split = config.split or ("val" if scene_index % VALIDATION_EVERY == VALIDATION_EVERY - 1 else "train")
     submaps, drawn = [], []
@@ -207,14 +217,18 @@ def simulate_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         for index in window:
             if index not in cache:
                 scan_rng = np.random.default_rng((*seed, 1, int(index)))
-                points = raycaster.scan(sensor, poses[index], scan_rng, MAX_RANGE_M + 1.0)
-                cache[int(index)] = preprocess_scan(points).astype(np.float32)
-        world = aggregate_map((cache[int(index)], map_poses[index]) for index in window)
+                attribute_rng = np.random.default_rng((*seed, ATTRIBUTE_STREAM, int(index)))
+                sweep = raycaster.sweep(sensor, poses[index], scan_rng, attribute_rng, MAX_RANGE_M + 1.0)
+                keep = range_mask(sweep.points)
+                cache[int(index)] = (sweep.points[keep].astype(np.float32),
+                                     {name: values[keep] for name, values in sweep.attributes().items()})
+        world, values = aggregate_labelled_map((*cache[int(index)], map_poses[index]) for index in window)
         centre = map_poses[key, :3, 3]
-        points = crop_submap(world, centre)
-        if len(points) == 0:
+        inside = crop_mask(world, centre)
+        if not inside.any():
             continue
-        submaps.append(Submap(points, centre.copy(), submap_bounds(centre), source, number, map_poses[key], split))
+        submaps.append(Submap(world[inside], centre.copy(), submap_bounds(centre), source, number, map_poses[key],
+                              split, {name: column[inside] for name, column in values.items()}))
         drawn.append({"index": number, "n_scans": int(len(window)), "stride": stride})
         for index in [index for index in cache if index < window[0]]:  # windows move forward
             del cache[index]

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 
-from mapsqueeze.data.simulator.shapes import Material, MeshBuilder, grid_surface, quads
+from mapsqueeze.data.simulator.shapes import Material, MeshBuilder, Semantic, grid_surface, quads
 
 STEP_M = 0.5
 """Centre-line sampling step (metres)."""
@@ -114,8 +114,9 @@ class Street:
         return self.s[index] + along, t, beside
 
     def mesh(self) -> MeshBuilder:
-        """Road surface (cambered), kerb faces, sidewalks / shoulders, and kerb ends at the junction gaps."""
-        builder = MeshBuilder()
+        """Road surface (cambered; parking-lane quads labelled parking), kerb faces, sidewalks / shoulders (grass:
+        terrain), and kerb ends at the junction gaps."""
+        builder = MeshBuilder(Semantic.SIDEWALK)
         k = len(self.xy)
         t_road = np.unique(np.r_[np.linspace(-self.half_width[0], 0.0, int(self.half_width[0]) + 2),
                                  np.linspace(0.0, self.half_width[1], int(self.half_width[1]) + 2)])
@@ -123,7 +124,11 @@ class Street:
         road_z = (self.z[:, None] - self.camber * np.abs(t_road)[None, :]
                   + self.unevenness(self.s[:, None], t_road[None, :]))
         road = np.concatenate([road_xy, road_z[..., None]], -1)
-        builder.add(_strip(road), Material.SOLID)
+        middle = (t_road[:-1] + t_road[1:]) / 2
+        side = (middle > 0).astype(int)
+        parking = (self.parking[side] > 0) & (np.abs(middle) > self.half_width[side] - self.parking[side])
+        column = np.where(parking, Semantic.PARKING, Semantic.ROAD).astype(np.uint16)  # one class per quad column
+        builder.add(_strip(road), Material.SOLID, np.repeat(np.tile(column, k - 1), 2))
         for side, sign in ((0, -1.0), (1, 1.0)):
             if self.sidewalk[side] <= 0:
                 continue
@@ -139,7 +144,8 @@ class Street:
             top_inner = np.column_stack([inner, edge_z + self.kerb_height])
             top_outer = np.column_stack([outer, edge_z + self.kerb_height + SIDEWALK_SLOPE * self.sidewalk[side]])
             material = Material.SOLID if self.kerb_height > 0 else Material.GRASS
-            builder.add(_strip(np.stack([top_inner, top_outer], 1), keep), material)
+            builder.add(_strip(np.stack([top_inner, top_outer], 1), keep), material,
+                        Semantic.SIDEWALK if self.kerb_height > 0 else Semantic.TERRAIN)
             if self.kerb_height > 0:
                 builder.add(_strip(np.stack([low, top_inner], 1), keep))
                 ends = np.flatnonzero(np.diff(np.r_[0, keep.astype(int), 0]))  # segment boundaries
@@ -282,6 +288,6 @@ class Ground:
         return True
 
     def mesh(self) -> MeshBuilder:
-        builder = MeshBuilder()
+        builder = MeshBuilder(Semantic.TERRAIN)
         builder.add(grid_surface(self.x, self.y, self.z, self._keep), Material.GRASS)
         return builder
