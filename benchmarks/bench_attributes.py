@@ -19,6 +19,13 @@ Writes results.md and results.json under --out.
 codes instead a proxy label on the KITTI map (no real labels are available here): ground (40) where a point lies
 within 0.25 m of the lowest point of its 1 m x 1 m column, object (10) up to 2.5 m above it, structure (50) higher;
 spatially coherent classes with real boundaries. Writes labels.md.
+
+    PYTHONPATH=src python benchmarks/bench_attributes.py --simulated 4 --out results/attributes
+
+measures instead simulated submaps, which carry real labels: `--simulated N` simulates N submaps (one scene each,
+HDL-64E, urban / suburban / rural / highway in turn, seed 2026) with `simulate_dataset` (what `mapsqueeze
+simulate` runs) into OUT/sim, or reads the submaps already there; per submap, intensity as above (mapsqueeze
+and G-PCC RAHT) and the semantic label at the label voxels. Writes simulated.md and simulated.json.
 """
 
 import argparse
@@ -94,6 +101,67 @@ def label_table(real: Path) -> list[str]:
     return lines
 
 
+SIM_PRESETS = ("urban", "suburban", "rural", "highway")
+
+
+def simulated_clouds(n_submaps: int, folder: Path) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """N simulated submaps (simulated into `folder` unless its dataset already holds them): name -> (local points,
+    intensity and label)."""
+    from mapsqueeze.data import read_dataset
+    from mapsqueeze.data.simulator import SimulationConfig, simulate_dataset
+
+    if not (folder / "manifest.json").is_file() or len(read_dataset(folder).records) < n_submaps:
+        simulate_dataset(folder, SimulationConfig(n_submaps=n_submaps, submaps_per_scene=1, sensors=("hdl64",),
+                                                  presets=SIM_PRESETS, seed=2026, split="test"))
+    clouds = {}
+    for record in read_dataset(folder).records[:n_submaps]:
+        cloud = read_point_cloud(record.path)
+        clouds[record.path.stem] = (cloud.points, {name: cloud.attributes[name] for name in ("intensity", "label")})
+    return clouds
+
+
+def simulated_table(n_submaps: int, out: Path, tmc3: str) -> tuple[list[str], dict]:
+    """Intensity (mapsqueeze, G-PCC RAHT) and label rows per simulated submap."""
+    results, lines = {}, [f"# Attributes of {n_submaps} simulated submaps (benchmarks/bench_attributes.py "
+                          f"--simulated {n_submaps})", ""]
+    with tempfile.TemporaryDirectory() as temp:
+        for cloud_name, (points, values) in simulated_clouds(n_submaps, out / "sim").items():
+            rows = [measure(points, values, "intensity", voxel, step) for voxel in VOXELS_M for step in STEPS]
+            rows += [measure(points, values, "label", voxel, STEPS[0]) for voxel in LABEL_VOXELS_M]
+            raht = [gpcc(tmc3, points, values["intensity"], 255.0, GPCC_TRANSFORMS["raht"], qp, Path(temp))
+                    for qp in GPCC_QPS]
+            results[cloud_name] = {"n_points": len(points), "rows": rows, "gpcc_raht": raht}
+            lines += [f"## {cloud_name} ({len(points):,} points)", "",
+                      "| codec | attribute | setting | attribute bpp | error | constant guess | ratio / accuracy |",
+                      "|---|---|---|---|---|---|---|"]
+            lines += [_simulated_row("mapsqueeze", row) for row in rows]
+            lines += [_simulated_row("G-PCC raht", row) for row in raht] + [""]
+            print(f"done {cloud_name}", file=sys.stderr, flush=True)
+    n_points = sum(result["n_points"] for result in results.values())
+    lines += [f"## All {len(results)} submaps ({n_points:,} points): bits over all points, point-weighted quality", "",
+              "| codec | attribute | setting | attribute bpp | error | constant guess | ratio / accuracy |",
+              "|---|---|---|---|---|---|---|"]
+    for codec, key in (("mapsqueeze", "rows"), ("G-PCC raht", "gpcc_raht")):
+        for same in zip(*(result[key] for result in results.values())):  # one setting over every submap
+            pooled = dict(same[0])
+            for name in ("attribute_bpp", "error", "constant_error", "ratio", "accuracy"):
+                if name in pooled:
+                    pooled[name] = sum(row[name] * result["n_points"] for row, result in zip(same, results.values()))
+                    pooled[name] /= n_points
+            lines.append(_simulated_row(codec, pooled))
+    return lines, results
+
+
+def _simulated_row(codec: str, row: dict) -> str:
+    """A table row of a mapsqueeze or G-PCC measurement (G-PCC rows are intensity)."""
+    setting = f"qp {row['qp']}" if "qp" in row else f"voxel {row['voxel_m']:g} m, step 1/{round(1 / row['step'])}"
+    quality = f"{row['ratio']:.3f}" if "ratio" in row else f"accuracy {row['accuracy']:.4f}"
+    error = f"{row['error']:.4f}" if "error" in row else ""
+    constant = f"{row['constant_error']:.4f}" if "constant_error" in row else ""
+    return (f"| {codec} | {row.get('attribute', 'intensity')} | {setting} | {row['attribute_bpp']:.3f} | {error} | "
+            f"{constant} | {quality} |")
+
+
 def measure(points, values: dict[str, np.ndarray], name: str, voxel: float, step: float) -> dict:
     data = mapsqueeze.compress(points, attributes=values, attribute_options=AttributeOptions(name, voxel, step))
     decoded = mapsqueeze.decompress_cloud(data)
@@ -154,8 +222,15 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("results/attributes"))
     parser.add_argument("--tmc3", default=tmc3_executable())
     parser.add_argument("--labels", action="store_true", help="only the proxy-label table")
+    parser.add_argument("--simulated", type=int, metavar="N", help="only N simulated submaps (in OUT/sim)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.simulated:
+        lines, results = simulated_table(args.simulated, args.out, args.tmc3)
+        (args.out / "simulated.json").write_text(json.dumps(results, indent=1))
+        (args.out / "simulated.md").write_text("\n".join(lines) + "\n")
+        print("\n".join(lines))
+        return
     real = real_data_dir()
     if args.labels:
         lines = label_table(real)
