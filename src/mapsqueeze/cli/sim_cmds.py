@@ -49,7 +49,8 @@ def simulate(
 
     Scenes (roads, buildings, cars, vegetation, fences, poles, clutter, terrain) are ray-cast with a real sensor's
     beam pattern while driving; each submap aggregates a random number of scans with the real pipeline (2-20 m
-    range, 10 cm voxels, 40 x 40 x 15 m boxes every 15 m).
+    range, 10 cm voxels, 40 x 40 x 15 m boxes every 15 m). Every point carries its intensity (0..1), semantic
+    label (SemanticKITTI ids) and instance id.
     """
     from mapsqueeze.data.simulator.simulate import SimulationConfig, simulate_dataset  # trimesh: imported here
 
