@@ -166,3 +166,44 @@ def test_a_simulated_submap_keeps_its_fields_through_compress_and_decompress(run
     error = attribute_error(original.points, values["intensity"], decoded.points, decoded.attributes["intensity"])
     assert error < 0.8 * constant_guess_error(original.points, values["intensity"], decoded.points)
     assert label_accuracy(original.points, values["label"], decoded.points, decoded.attributes["label"]) > 0.8
+
+
+@pytest.mark.parametrize("preset", ["highway", "suburban"])
+def test_road_labels_lie_on_the_road_and_sidewalk_labels_beside_it(preset):
+    rng = np.random.default_rng(4)
+    scene = build_scene(preset, 40.0, rng)
+    pose = np.eye(4)
+    pose[:3, 3] = [*scene.street.point(scene.drive_start_m + 20.0, scene.lane_offset_m),
+                   float(scene.street.surface_z(scene.drive_start_m + 20.0, scene.lane_offset_m)) + MOUNT_M]
+    raycaster = Raycaster(scene.vertices, scene.faces, scene.materials, scene.labels, scene.objects)
+    sweep = raycaster.sweep(ideal_sensor(), pose, np.random.default_rng(5), np.random.default_rng(6))
+    world = sweep.points + pose[:3, 3]
+    s, t, beside = scene.street.project(world[:, :2])
+    half = scene.street.half_width[(t > 0).astype(int)]
+    mine = beside & ~scene.street.in_gap(s, t)  # junction mouths belong to cross streets
+    road = mine & np.isin(sweep.label, [Semantic.ROAD, Semantic.PARKING])
+    assert road.sum() > 1000 and np.all(np.abs(t[road]) < half[road] + 0.05)
+    side = mine & np.isin(sweep.label, [Semantic.SIDEWALK, Semantic.TERRAIN])
+    assert side.sum() > 100 and np.all(np.abs(t[side]) > half[side] - 0.05)
+    assert np.all(np.abs(world[road, 2] - scene.street.surface_z(s[road], t[road])) < 0.05)
+
+
+def test_lane_markings_are_labelled_and_brighter_than_the_asphalt_around_them():
+    scene = build_scene("urban", 40.0, np.random.default_rng(8))
+    s0 = scene.drive_start_m + 20.0
+    pose = np.eye(4)
+    pose[:3, 3] = [*scene.street.point(s0, scene.lane_offset_m),
+                   float(scene.street.surface_z(s0, scene.lane_offset_m)) + MOUNT_M]
+    raycaster = Raycaster(scene.vertices, scene.faces, scene.materials, scene.labels, scene.objects,
+                          markings=scene.lane_markings)
+    sweep = raycaster.sweep(ideal_sensor(), pose, np.random.default_rng(5), np.random.default_rng(6))
+    paint = sweep.label == Semantic.LANE_MARKING
+    asphalt = sweep.label == Semantic.ROAD
+    assert paint.sum() > 50 and asphalt.sum() > 20 * paint.sum()
+    distance = np.linalg.norm(sweep.points, axis=1)
+    for low in (3.0, 6.0, 9.0):  # same range band: similar incidence, same falloff
+        band = (distance >= low) & (distance < low + 3.0)
+        assert sweep.intensity[paint & band].mean() > 1.5 * sweep.intensity[asphalt & band].mean()
+    world = sweep.points + pose[:3, 3]
+    _, t, _ = scene.street.project(world[paint, :2])
+    assert np.all(np.abs(t) < scene.street.half_width[(t > 0).astype(int)])

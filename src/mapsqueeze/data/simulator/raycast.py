@@ -9,14 +9,15 @@ Beams that hit nothing give no return (no sky points). `sweep` also gives each r
 """
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import trimesh
 
-from mapsqueeze.data.simulator.reflectance import face_reflectivity, intensity
+from mapsqueeze.data.simulator.reflectance import REFLECTIVITY, face_reflectivity, intensity
 from mapsqueeze.data.simulator.sensors import SensorInstance
-from mapsqueeze.data.simulator.shapes import Material
+from mapsqueeze.data.simulator.shapes import Material, Semantic
 from mapsqueeze.errors import SimulationError
 
 
@@ -65,11 +66,13 @@ class Raycaster:
 
     Per face: `materials` (`shapes.Material`), and optionally `labels` (`shapes.Semantic`, default unlabeled),
     object ids (> 0 countable objects) and `reflectivity` (default: each class's median reflectivity).
+    `markings(world points, faces) -> bool mask` picks returns on road paint (`Scene.lane_markings`).
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, materials: np.ndarray,
                  labels: np.ndarray | None = None, objects: np.ndarray | None = None,
-                 reflectivity: np.ndarray | None = None):
+                 reflectivity: np.ndarray | None = None,
+                 markings: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None):
         if len(faces) == 0:
             raise SimulationError("the scene has no triangles")
         self.mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False, validate=False)
@@ -82,6 +85,7 @@ class Raycaster:
         self.instances = np.maximum(objects, 0).astype(np.uint16)
         self.reflectivity = (face_reflectivity(self.labels, objects, self.materials, None) if reflectivity is None
                              else np.asarray(reflectivity, dtype=np.float64))
+        self.markings = markings
         responses = [MATERIAL_RESPONSE[Material(code)] for code in range(len(Material))]
         self._returns = np.array([r.returns for r in responses])
         self._passes = np.array([r.passes for r in responses])
@@ -130,8 +134,12 @@ class Raycaster:
         """`scan`'s points (the same for the same `rng`) with their intensity, label and instance id; the
         intensity noise comes from `attribute_rng` alone."""
         points, face, cosine, distance = self._trace(sensor, pose, rng, max_range_m)
-        return Sweep(points, intensity(self.reflectivity[face], cosine, distance, attribute_rng),
-                     self.labels[face], self.instances[face])
+        labels, reflectivity = self.labels[face], self.reflectivity[face]
+        if self.markings is not None:
+            paint = self.markings(points @ pose[:3, :3].T + pose[:3, 3], face)
+            labels = np.where(paint, np.uint16(Semantic.LANE_MARKING), labels)
+            reflectivity = np.where(paint, REFLECTIVITY[Semantic.LANE_MARKING][0], reflectivity)
+        return Sweep(points, intensity(reflectivity, cosine, distance, attribute_rng), labels, self.instances[face])
 
     def _trace(self, sensor: SensorInstance, pose: np.ndarray, rng: np.random.Generator,
                max_range_m: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

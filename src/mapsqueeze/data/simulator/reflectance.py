@@ -1,9 +1,9 @@
 """Surface reflectivity and the intensity of a return: what a LiDAR's intensity / reflectance channel measures.
 
 Every face gets a diffuse reflectivity at the laser's 905 nm wavelength from its semantic class (asphalt ~0.12,
-concrete ~0.3, grass and leaves ~0.4-0.5, retro-reflective sign sheeting ~3), varied per object by a log-normal
-factor (cars of every colour, buildings of every facade), lowered on glass. A return's intensity follows the
-lidar equation for an extended Lambertian target, received power ~ reflectivity x cos(incidence) / range^2, with
+lane paint ~0.6, concrete ~0.3, grass and leaves ~0.4-0.5, retro-reflective sign sheeting ~3), varied per object
+by a log-normal factor (cars of every colour, buildings of every facade), lowered on glass. A return's intensity
+follows the lidar equation for an extended Lambertian target, received power ~ reflectivity x cos(incidence) / range^2, with
 speckle noise, compressed to 0..1 like KITTI's reflectance channel (`intensity`).
 """
 
@@ -24,6 +24,7 @@ REFLECTIVITY: dict[Semantic, tuple[float, float]] = {
     Semantic.BUILDING: (0.35, 0.35),
     Semantic.FENCE: (0.3, 0.35),
     Semantic.OTHER_STRUCTURE: (0.3, 0.3),
+    Semantic.LANE_MARKING: (0.6, 0.0),  # white road paint with glass beads
     Semantic.VEGETATION: (0.5, 0.2),  # leaves reflect strongly in the near infrared
     Semantic.TRUNK: (0.3, 0.2),
     Semantic.TERRAIN: (0.4, 0.2),

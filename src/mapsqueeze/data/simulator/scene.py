@@ -14,6 +14,7 @@ from mapsqueeze.data.simulator import objects
 from mapsqueeze.data.simulator.layout import REACH_M, Layout
 from mapsqueeze.data.simulator.lots import fill_side, furnish, open_spans, utility_wires
 from mapsqueeze.data.simulator.presets import Preset, get_preset
+from mapsqueeze.data.simulator.shapes import Semantic
 from mapsqueeze.data.simulator.streets import STEP_M, Ground, SideProfile, Street, random_bumps
 from mapsqueeze.errors import SimulationError
 
@@ -38,6 +39,34 @@ class Scene:
     drive_end_m: float
     lane_offset_m: float  # lateral offset of the driven lane (negative: right of the centre line)
     preset: str
+    lanes: int = 1  # driving lanes per direction of the main street
+    lane_width_m: float = 3.0
+    median_m: float = 0.0  # width of the median barrier (0: none)
+    street_object: int = 0  # object id of the main street's mesh
+
+    def lane_markings(self, points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """(N,) bool: which returns (world points (N, 3) metres, on faces (N,)) lie on the main street's paint.
+
+        Lines are 15 cm wide: dashed lane dividers (3 m line, 9 m gap) between the lanes of one direction, the
+        centre line (solid with 2+ lanes, dashed else) where there is no median, a solid line at the parking
+        lane's edge or 25 cm inside the road edge.
+        """
+        marked = np.zeros(len(points), dtype=bool)
+        road = np.flatnonzero((self.objects[faces] == self.street_object) & (self.labels[faces] == Semantic.ROAD))
+        if len(road) == 0:
+            return marked
+        s, t, _ = self.street.project(points[road, :2])
+        across = np.abs(t) - self.median_m / 2  # metres from the centre line or the median's edge
+        parked = self.street.parking[(t > 0).astype(int)] > 0
+        dashed = np.fmod(s, 12.0) < 3.0
+        edge = self.lanes * self.lane_width_m - np.where(parked, 0.0, 0.25)
+        on_line = np.abs(across - edge) < 0.075
+        for k in range(1, self.lanes):
+            on_line |= (np.abs(across - k * self.lane_width_m) < 0.075) & dashed
+        if self.median_m == 0:
+            on_line |= (across < 0.075) & (dashed | (self.lanes > 1))
+        marked[road] = on_line
+        return marked
 
     @property
     def top_z(self) -> float:
@@ -77,8 +106,9 @@ def build_scene(preset: Preset | str, drive_length_m: float, rng: np.random.Gene
     ground = Ground(streets, profiles, route, rng, relief_m=preset.relief * rng.uniform(0.3, 1.0),
                     roughness_m=rng.uniform(0.01, 0.04), reach_m=REACH_M)
     layout = Layout(rng, preset, ground, route)
-    for street in streets:
-        layout.builder.extend(street.mesh(), np.eye(3), np.zeros(3), layout.new_object(False))
+    street_objects = [layout.new_object(False) for _ in streets]
+    for street, object_id in zip(streets, street_objects):
+        layout.builder.extend(street.mesh(), np.eye(3), np.zeros(3), object_id)
     layout.builder.extend(ground.mesh(), np.eye(3), np.zeros(3), layout.new_object(False))
     if preset.median:  # in 20 m pieces that follow the curves
         for a in np.arange(0.0, length - 1.0, 20.0):
@@ -97,7 +127,8 @@ def build_scene(preset: Preset | str, drive_length_m: float, rng: np.random.Gene
     if object_ids.max() > MAX_INSTANCE:
         raise SimulationError(f"{object_ids.max()} objects in one scene; instance ids go up to {MAX_INSTANCE}")
     return Scene(vertices, faces, materials, labels, object_ids, main, drive_start, drive_end,
-                 -(lane_width * (int(rng.integers(lanes)) + 0.5) + median / 2), preset.name)
+                 -(lane_width * (int(rng.integers(lanes)) + 0.5) + median / 2), preset.name, lanes, lane_width, median,
+                 street_objects[0])
 
 
 def _centre_line(rng: np.random.Generator, length: float, preset: Preset) -> np.ndarray:

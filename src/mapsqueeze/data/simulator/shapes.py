@@ -49,6 +49,7 @@ class Semantic(IntEnum):
     BUILDING = 50
     FENCE = 51
     OTHER_STRUCTURE = 52
+    LANE_MARKING = 60
     VEGETATION = 70
     TRUNK = 71
     TERRAIN = 72

@@ -200,7 +200,8 @@ def simulate_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     keys = first + submap_centers(poses[first:], SUBMAP_SPACING_M)[:n_submaps]
     reflectivity = face_reflectivity(scene.labels, scene.objects, scene.materials,
                                      np.random.default_rng((*seed, ATTRIBUTE_STREAM)))
-    raycaster = Raycaster(scene.vertices, scene.faces, scene.materials, scene.labels, scene.objects, reflectivity)
+    raycaster = Raycaster(scene.vertices, scene.faces, scene.materials, scene.labels, scene.objects, reflectivity,
+                          scene.lane_markings)
     speed = travelled[-1] / max(len(poses) - 1, 1) * SCAN_RATE_HZ
     low, high = config.scans_per_submap
     cache: dict[int, tuple[np.ndarray, dict[str, np.ndarray]]] = {}  # scan index -> (points, attributes)
