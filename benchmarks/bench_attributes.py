@@ -25,7 +25,8 @@ spatially coherent classes with real boundaries. Writes labels.md.
 measures instead simulated submaps, which carry real labels: `--simulated N` simulates N submaps (one scene each,
 HDL-64E, urban / suburban / rural / highway in turn, seed 2026) with `simulate_dataset` (what `mapsqueeze
 simulate` runs) into OUT/sim, or reads the submaps already there; per submap, intensity as above (mapsqueeze
-and G-PCC RAHT) and the semantic label at the label voxels. Writes simulated.md and simulated.json.
+and G-PCC RAHT) and the semantic label at the label voxels, and the intensity distribution against KITTI's
+reflectance (scan 000000, 2-20 m). Writes simulated.md and simulated.json.
 """
 
 import argparse
@@ -120,12 +121,22 @@ def simulated_clouds(n_submaps: int, folder: Path) -> dict[str, tuple[np.ndarray
     return clouds
 
 
-def simulated_table(n_submaps: int, out: Path, tmc3: str) -> tuple[list[str], dict]:
-    """Intensity (mapsqueeze, G-PCC RAHT) and label rows per simulated submap."""
+def simulated_table(n_submaps: int, out: Path, tmc3: str, real: Path) -> tuple[list[str], dict]:
+    """Intensity (mapsqueeze, G-PCC RAHT) and label rows per simulated submap; the intensity distribution against
+    KITTI's reflectance (scan 000000, 2-20 m)."""
+    clouds = simulated_clouds(n_submaps, out / "sim")
+    kitti = read_point_cloud(real / "kitti_seq00_scans" / "000000.bin")
+    distance = np.linalg.norm(kitti.points, axis=1)
+    simulated = np.concatenate([values["intensity"] for _, values in clouds.values()])
+    reflectance = kitti.attributes["reflectance"][(distance > 2.0) & (distance < 20.0)]
+    spread = {name: f"{' / '.join(f'{v:.2f}' for v in np.percentile(values, (10, 50, 90)))} (mean {values.mean():.2f})"
+              for name, values in (("simulated", simulated), ("kitti", reflectance))}
     results, lines = {}, [f"# Attributes of {n_submaps} simulated submaps (benchmarks/bench_attributes.py "
-                          f"--simulated {n_submaps})", ""]
+                          f"--simulated {n_submaps})", "",
+                          f"Intensity p10 / p50 / p90: simulated submaps {spread['simulated']}; KITTI scan 000000 "
+                          f"reflectance at 2-20 m {spread['kitti']}.", ""]
     with tempfile.TemporaryDirectory() as temp:
-        for cloud_name, (points, values) in simulated_clouds(n_submaps, out / "sim").items():
+        for cloud_name, (points, values) in clouds.items():
             rows = [measure(points, values, "intensity", voxel, step) for voxel in VOXELS_M for step in STEPS]
             rows += [measure(points, values, "label", voxel, STEPS[0]) for voxel in LABEL_VOXELS_M]
             raht = [gpcc(tmc3, points, values["intensity"], 255.0, GPCC_TRANSFORMS["raht"], qp, Path(temp))
@@ -225,13 +236,13 @@ def main() -> None:
     parser.add_argument("--simulated", type=int, metavar="N", help="only N simulated submaps (in OUT/sim)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    real = real_data_dir()
     if args.simulated:
-        lines, results = simulated_table(args.simulated, args.out, args.tmc3)
+        lines, results = simulated_table(args.simulated, args.out, args.tmc3, real)
         (args.out / "simulated.json").write_text(json.dumps(results, indent=1))
         (args.out / "simulated.md").write_text("\n".join(lines) + "\n")
         print("\n".join(lines))
         return
-    real = real_data_dir()
     if args.labels:
         lines = label_table(real)
         (args.out / "labels.md").write_text("\n".join(lines) + "\n")
