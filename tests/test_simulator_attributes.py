@@ -153,6 +153,9 @@ def test_a_simulated_submap_keeps_its_fields_through_compress_and_decompress(run
     record = read_dataset(tmp_path / "sim").records[0]
     original = read_point_cloud(record.path)
     assert set(original.attributes) == {"intensity", "label", "instance"}
+    names = read_dataset(tmp_path / "sim").sources[record.source]["labels"]
+    assert names["40"] == "road" and names["81"] == "traffic-sign"
+    assert {str(label) for label in np.unique(original.attributes["label"])} <= set(names)
     code, _, err = run_cli("compress", str(record.path), "-o", str(tmp_path / "map.msq"), "--model",
                            str(tiny_model_dir))
     assert code == 0, err

@@ -38,6 +38,7 @@ from mapsqueeze.data.simulator.raycast import Raycaster
 from mapsqueeze.data.simulator.reflectance import face_reflectivity
 from mapsqueeze.data.simulator.scene import Scene, build_scene
 from mapsqueeze.data.simulator.sensors import SensorInstance, get_sensor
+from mapsqueeze.data.simulator.shapes import Semantic
 from mapsqueeze.errors import SimulationError
 
 SCAN_RATE_HZ = 10.0
@@ -244,6 +245,7 @@ def simulate_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         "mean_speed_mps": round(float(speed), 2),
         "triangles": int(len(scene.faces)),
         "submaps": drawn,
+        "labels": {str(int(semantic)): semantic.label_name for semantic in Semantic},  # `label` field: class names
     }
     return SceneResult(source, submaps, meta)
 
