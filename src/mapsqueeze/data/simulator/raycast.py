@@ -57,7 +57,8 @@ class Sweep:
     instance: np.ndarray
 
     def attributes(self) -> dict[str, np.ndarray]:
-        """The per-point attributes by the names the io layer uses (as a SemanticKITTI scan reads)."""
+        """The per-point attributes by the names the io layer uses (`label` and `instance` as it reads a
+        SemanticKITTI .label file)."""
         return {"intensity": self.intensity, "label": self.label, "instance": self.instance}
 
 
