@@ -23,7 +23,7 @@ spatially coherent classes with real boundaries. Writes labels.md.
     PYTHONPATH=src python benchmarks/bench_attributes.py --simulated 4 --out results/attributes
 
 measures instead simulated submaps, which carry real labels: `--simulated N` simulates N submaps (one scene each,
-HDL-64E, urban / suburban / rural / highway in turn, seed 2026) with `simulate_dataset` (what `mapsqueeze
+HDL-64E, urban / suburban / rural / highway in turn, seeds 2026, 2027, ...) with `simulate_dataset` (what `mapsqueeze
 simulate` runs) into OUT/sim, or reads the submaps already there; per submap, intensity as above (mapsqueeze
 and G-PCC RAHT) and the semantic label at the label voxels, and the intensity distribution against KITTI's
 reflectance (scan 000000, 2-20 m). Writes simulated.md and simulated.json.
@@ -111,9 +111,10 @@ def simulated_clouds(n_submaps: int, folder: Path) -> dict[str, tuple[np.ndarray
     from mapsqueeze.data import read_dataset
     from mapsqueeze.data.simulator import SimulationConfig, simulate_dataset
 
-    if not (folder / "manifest.json").is_file() or len(read_dataset(folder).records) < n_submaps:
-        simulate_dataset(folder, SimulationConfig(n_submaps=n_submaps, submaps_per_scene=1, sensors=("hdl64",),
-                                                  presets=SIM_PRESETS, seed=2026, split="test"))
+    for number in range(n_submaps):  # seed 2026 + number, one preset after the other
+        if not list(folder.glob(f"sim{2026 + number}-*.ply")):
+            simulate_dataset(folder, SimulationConfig(n_submaps=1, sensors=("hdl64",), split="test", seed=2026 + number,
+                                                      presets=(SIM_PRESETS[number % len(SIM_PRESETS)],)))
     clouds = {}
     for record in read_dataset(folder).records[:n_submaps]:
         cloud = read_point_cloud(record.path)
