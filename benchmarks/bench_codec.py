@@ -88,10 +88,10 @@ def border_and_interior_d_e(gt: np.ndarray, rec: np.ndarray, tile_size=(40.0, 40
 def _stage(args) -> None:
     """Child process: one compress or decompress, timed; prints JSON."""
     os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:CORES])
-    import torch
-
-    torch.set_num_threads(CORES)
     import mapsqueeze
+    from mapsqueeze.geometry.threads import set_threads
+
+    set_threads(CORES)
 
     start = time.perf_counter()
     if args.stage == "compress":

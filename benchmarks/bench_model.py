@@ -12,8 +12,8 @@ import time
 import numpy as np
 import torch
 
-from mapsqueeze.model import ModelConfig, build_model
-from mapsqueeze.model.autoencoder import CompressionModel
+from mapsqueeze.geometry.threads import set_threads
+from mapsqueeze.model import CompressionModel, ModelConfig, build_model
 from mapsqueeze.model.loss import depoco_loss
 from mapsqueeze.shared import real_submaps_dir
 
@@ -49,10 +49,10 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     cloud, name = load_cloud(30000)
     network = build_model(ModelConfig.for_rate(args.rate))
-    model = CompressionModel(network, args.rate, "")
+    model = CompressionModel.from_network(network, args.rate, "")
     emb = model.encode(cloud)
     model.decode(emb.points, emb.features)
     t_enc = timed(lambda: model.encode(cloud), args.repeats)

@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
-import torch
 
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
+from mapsqueeze.geometry.threads import set_threads, threads
 from mapsqueeze.geometry.morton import (
     MAX_BITS,
     bit_reversal_order,
@@ -42,13 +42,13 @@ def test_radius_neighbors_keep_an_evenly_spread_subset_whatever_the_thread_count
     expected = brute_force_neighbors(source, queries, 0.12, 25)
     assert (expected == len(source)).all(axis=1).any() and (expected != len(source)).all(axis=1).any()
     assert ((expected == len(source)).any(axis=1) & (expected != len(source)).any(axis=1)).any()
-    threads = torch.get_num_threads()
+    previous = threads()
     try:
         for n in (1, 2, 3):
-            torch.set_num_threads(n)
+            set_threads(n)
             np.testing.assert_array_equal(radius_neighbors(source, queries, 0.12, 25), expected)
     finally:
-        torch.set_num_threads(threads)
+        set_threads(previous)
 
 
 def test_radius_neighbors_on_flat_and_degenerate_clouds():
@@ -76,10 +76,10 @@ def test_grid_subsample_keeps_the_point_nearest_each_voxel_centre():
 def test_run_over_ranges_covers_every_row_once_for_any_thread_count():
     from mapsqueeze.geometry.threads import run_over_ranges
 
-    threads = torch.get_num_threads()
+    previous = threads()
     try:
         for n_threads, n_rows, min_rows in ((1, 1000, 10), (3, 1000, 10), (4, 5, 1), (2, 0, 256), (3, 700, 256)):
-            torch.set_num_threads(n_threads)
+            set_threads(n_threads)
             hits = np.zeros(n_rows, dtype=np.int64)
             ranges = []
 
@@ -91,7 +91,7 @@ def test_run_over_ranges_covers_every_row_once_for_any_thread_count():
             assert (hits == 1).all()
             assert len(ranges) == max(1, min(n_threads, n_rows // min_rows))
     finally:
-        torch.set_num_threads(threads)
+        set_threads(previous)
 
 
 def _morton_by_bits(cells: np.ndarray, bits: int) -> np.ndarray:

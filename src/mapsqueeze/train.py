@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from mapsqueeze.errors import MapsqueezeError, ModelError
+from mapsqueeze.geometry.threads import set_threads
 from mapsqueeze.model import Autoencoder, ModelConfig, build_model, load_network, save_model
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss
 
@@ -407,7 +408,7 @@ def train_processes(nproc: int, dataset: Path, out_dir: Path, model_config: Mode
 
 def _train_process(rank: int, nproc: int, port: int, *args) -> None:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    torch.set_num_threads(max(1, cores // nproc))
+    set_threads(max(1, cores // nproc))
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(nproc), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     train(*args)

@@ -73,7 +73,7 @@ def unique_labels(names: list[str]) -> list[str]:
 def _reference_models(log: Callable[[str], None]) -> dict[str, object]:
     """The reference checkpoints (e0..e3 found in the shared folder), imported; {} with a message when absent."""
     from mapsqueeze.model import import_reference
-    from mapsqueeze.model.autoencoder import CompressionModel
+    from mapsqueeze.model import CompressionModel
     from mapsqueeze.shared import reference_checkpoints_dir
 
     reference_dir = reference_checkpoints_dir()
@@ -83,7 +83,7 @@ def _reference_models(log: Callable[[str], None]) -> dict[str, object]:
     loaded = {}
     for p in refs:
         network = import_reference(p)
-        loaded[p.name] = CompressionModel(network, f"depoco-{p.name}", state_sha256(network))
+        loaded[p.name] = CompressionModel.from_network(network, f"depoco-{p.name}", state_sha256(network))
     return loaded
 
 

@@ -2,8 +2,9 @@
 
 Every executor maps a module-level `function(context, item)` over items and yields the results in input order,
 with at most a few items per worker submitted ahead of the one being yielded (memory: one tile per worker plus the
-results waiting for their turn). `context` (e.g. the model) is sent to each worker once. Each worker runs torch
-on its share of the cores; results do not depend on where a job ran, so every executor gives the same bytes.
+results waiting for their turn). `context` (e.g. the model) is sent to each worker once. Each worker runs its
+compiled kernels on its share of the cores; results do not depend on where a job ran, so every executor gives the
+same bytes.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.geometry.threads import set_threads
 
 TileFunction = Callable[[Any, Any], Any]
 
@@ -51,7 +53,7 @@ class SerialExecutor:
 
 class ProcessExecutor:
     """A pool of `workers` local processes (forkserver: safe whatever threads this process runs), each started
-    with the context and torch limited to its share of the cores."""
+    with the context and its threads limited to its share of the cores."""
 
     def __init__(self, workers: int, context: Any):
         import multiprocessing
@@ -178,14 +180,11 @@ def _received_stderr(handle: Any) -> Any:
 
 
 def _install_context(context: Any, threads: int, stderr: Any) -> None:
-    """Worker-process initialiser: write to the parent's stderr, keep the context for every job and limit torch's
-    threads."""
+    """Worker-process initialiser: write to the parent's stderr, keep the context for every job and limit the
+    threads (`set_threads`)."""
     global _context
-    import torch
-
     os.dup2(stderr.detach(), 2)
-
-    torch.set_num_threads(threads)
+    set_threads(threads)
     _context = context
 
 
@@ -195,8 +194,5 @@ def _run_installed(function: TileFunction, item: Any) -> Any:
 
 def _run_with_context(function: TileFunction, context: Any, item: Any, threads: int | None) -> Any:
     if threads is not None:
-        import torch
-
-        if torch.get_num_threads() != threads:
-            torch.set_num_threads(threads)
+        set_threads(threads)
     return function(context, item)

@@ -9,9 +9,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 
 from mapsqueeze.geometry.bounds import bounding_box
+from mapsqueeze.geometry.introsort import introsort_argsort
 from mapsqueeze.geometry.jit import compiled
 from mapsqueeze.geometry.threads import run_over_ranges
 
@@ -21,24 +21,26 @@ def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 
     points: (N, 3) float32 normalised coordinates in [0, 1) (tile-local metres / map size);
     voxel_size: voxel edge in the same normalised unit. Returns int64 indices ordered by voxel key (x fastest).
-    The sort key (voxel key + 0.7 * d^2 / max d^2) is float32 and sorted with torch's sort, exactly like the
-    reference, so that ties resolve the same way and its checkpoints keep the same embedding points.
+    The sort key (voxel key + 0.7 * d^2 / max d^2) is float32 and sorted in the order of torch's CPU sort
+    (`introsort_argsort`), exactly like the reference, so that ties resolve the same way and its checkpoints keep
+    the same embedding points.
     """
-    pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+    pts = np.ascontiguousarray(points, dtype=np.float32)
     if len(pts) == 0:
         return np.zeros(0, dtype=np.int64)
-    grid = torch.floor(pts / voxel_size)
-    dist = ((pts - (grid + 0.5) * voxel_size) ** 2).sum(dim=1)
+    size = np.float32(voxel_size)
+    grid = np.floor(pts / size)
+    dist = ((pts - (grid + np.float32(0.5)) * size) ** 2).sum(axis=1, dtype=np.float32)
     max_dist = dist.max()
     if max_dist > 0:
-        dist = dist / max_dist * 0.7
-    cells_per_axis = float(math.ceil(1.0 / voxel_size))
+        dist = dist / max_dist * np.float32(0.7)
+    cells_per_axis = np.float32(math.ceil(1.0 / voxel_size))
     key = grid[:, 0] + grid[:, 1] * cells_per_axis + grid[:, 2] * cells_per_axis * cells_per_axis
-    order = torch.argsort(key + dist)
+    order = introsort_argsort(key + dist)
     sorted_key = key[order]
-    first = torch.ones(len(order), dtype=torch.bool)
+    first = np.ones(len(order), dtype=bool)
     first[1:] = sorted_key[1:] != sorted_key[:-1]
-    return order[first].numpy().astype(np.int64)
+    return order[first]
 
 
 def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int) -> np.ndarray:

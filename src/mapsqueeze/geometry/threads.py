@@ -1,32 +1,71 @@
-"""Run a GIL-releasing compiled kernel over contiguous ranges of its rows on torch.get_num_threads() threads, and
-run torch's own CPU operations on one thread where their results must not depend on the thread count."""
+"""The package's CPU thread count: compiled kernels run over contiguous ranges of their rows on that many threads,
+and matrix products (numpy's BLAS, torch) run on one thread where their results must not depend on it."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-import torch
 
 _pool: ThreadPoolExecutor | None = None
 _pool_workers = 0
-_kernel_threads = 0  # the caller's thread count while `one_torch_thread` holds torch at one (0: none held)
+_threads = 0  # set_threads's count (0: the default, `default_threads`)
+_kernel_threads = 0  # the caller's torch thread count while `one_torch_thread` holds torch at one (0: none held)
 _pin_lock = threading.Lock()
 _pin_depth = 0
+_blas = None  # threadpoolctl's controller of the loaded BLAS libraries (made on first use)
+
+
+def default_threads() -> int:
+    """OMP_NUM_THREADS when set to a positive integer, else the cores this process may run on."""
+    try:
+        configured = int(os.environ.get("OMP_NUM_THREADS", ""))
+    except ValueError:
+        configured = 0
+    return configured if configured > 0 else max(1, len(os.sched_getaffinity(0)))
+
+
+def threads() -> int:
+    """Threads of the compiled kernels (`run_over_ranges`)."""
+    return _threads or default_threads()
+
+
+def set_threads(count: int) -> None:
+    """Run the compiled kernels, and torch if this process has imported it, on `count` threads."""
+    global _threads
+    _threads = max(1, int(count))
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.get_num_threads() != _threads:
+        torch.set_num_threads(_threads)
+
+
+@contextlib.contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """numpy's matrix products run on one BLAS thread inside the block, so their sums are added in one order
+    whatever the thread count (OpenBLAS and MKL split and block a product differently for 1 and 2 threads). The
+    compiled kernels of `run_over_ranges`, whose rows are independent, keep `threads()`."""
+    global _blas
+    if _blas is None:
+        from threadpoolctl import ThreadpoolController
+
+        _blas = ThreadpoolController()
+    with _blas.limit(limits=1, user_api="blas"):
+        yield
 
 
 @contextlib.contextmanager
 def one_torch_thread() -> Iterator[None]:
-    """torch's CPU operations run on one thread inside the block, so their sums are added in one order whatever
-    thread count the caller set (MKL splits and blocks a matrix product differently for 1 and 2 threads, and with
-    several threads its order may vary from run to run): encoding then gives the same bytes every time. The
-    compiled kernels of `run_over_ranges`, whose rows are independent, keep the caller's thread count. Nests; the
-    caller's setting is restored on exit."""
+    """torch's CPU operations run on one thread inside the block (as `one_blas_thread` for numpy), so encoding on
+    torch gives the same bytes every time; the compiled kernels keep the caller's torch thread count. Nests; the
+    caller's setting is restored on exit. Imports torch (the torch network's passes only)."""
     global _kernel_threads, _pin_depth
+    import torch
+
     with _pin_lock:
         if _pin_depth == 0:
             _kernel_threads = torch.get_num_threads()
@@ -53,15 +92,15 @@ os.register_at_fork(after_in_child=_reset_pool_after_fork)
 
 
 def run_over_ranges(kernel: Callable[[int, int], object], n_rows: int, min_rows_per_thread: int = 256) -> None:
-    """Calls kernel(first, stop) on contiguous ranges covering range(n_rows), at most one per torch thread (the
-    caller's count inside `one_torch_thread`) and
-    each of at least min_rows_per_thread rows, in parallel (the calling thread takes the first range); returns when
-    all are done. The kernel must write disjoint outputs per range, so results do not depend on the thread count.
-    One pool of worker threads serves every call (starting threads per call cost ~1 ms each)."""
+    """Calls kernel(first, stop) on contiguous ranges covering range(n_rows), at most one per thread (`threads()`,
+    or the caller's torch thread count inside `one_torch_thread`) and each of at least min_rows_per_thread rows, in
+    parallel (the calling thread takes the first range); returns when all are done. The kernel must write disjoint
+    outputs per range, so results do not depend on the thread count. One pool of worker threads serves every call
+    (starting threads per call cost ~1 ms each)."""
     global _pool, _pool_workers
-    n_ranges = max(1, min(_kernel_threads or torch.get_num_threads(), n_rows // max(1, min_rows_per_thread)))
+    n_ranges = max(1, min(_kernel_threads or threads(), n_rows // max(1, min_rows_per_thread)))
     bounds = np.linspace(0, n_rows, n_ranges + 1).astype(np.int64)
-    if n_ranges - 1 > _pool_workers:  # more torch threads than before: a larger pool replaces the old one
+    if n_ranges - 1 > _pool_workers:  # more threads than before: a larger pool replaces the old one
         if _pool is not None:
             _pool.shutdown(wait=False)
         _pool, _pool_workers = ThreadPoolExecutor(n_ranges - 1, thread_name_prefix="mapsqueeze-kernel"), n_ranges - 1

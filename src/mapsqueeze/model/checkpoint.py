@@ -1,21 +1,19 @@
-"""Weights on disk: safetensors + JSON config (never pickle), shipped models, import of the reference checkpoints."""
+"""The torch network and its weights on disk: saving, loading (`store` reads them without torch), import of the
+reference checkpoints."""
 
 from __future__ import annotations
 
-import hashlib
 import re
 from pathlib import Path
 
+import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 
 from mapsqueeze.errors import ModelError
-from mapsqueeze.model.autoencoder import Autoencoder, CompressionModel
+from mapsqueeze.model.autoencoder import Autoencoder
 from mapsqueeze.model.config import ModelConfig
-
-WEIGHTS_FILE = "model.safetensors"
-CONFIG_FILE = "config.json"
-SHIPPED_DIR = Path(__file__).resolve().parents[1] / "models"
+from mapsqueeze.model.store import CONFIG_FILE, WEIGHTS_FILE, read_weights
 
 
 def save_model(network: Autoencoder, out_dir: Path) -> Path:
@@ -32,54 +30,23 @@ def save_model(network: Autoencoder, out_dir: Path) -> Path:
     return out_dir
 
 
-def shipped_models() -> list[str]:
-    """Names of the models shipped inside the package (e.g. e0..e3)."""
-    if not SHIPPED_DIR.is_dir():
-        return []
-    return sorted(p.name for p in SHIPPED_DIR.iterdir() if (p / WEIGHTS_FILE).is_file())
-
-
-def shipped_weights_sha256(name: str) -> str | None:
-    """SHA-256 (hex) of a shipped model's weights file, or None when no shipped model has that name."""
-    if name not in shipped_models():
-        return None
-    return hashlib.sha256((SHIPPED_DIR / name / WEIGHTS_FILE).read_bytes()).hexdigest()
-
-
-def resolve_model_dir(name_or_path: str | Path, shipped_only: bool = False) -> Path:
-    """A shipped model name (e.g. 'e1') or, unless shipped_only, a directory holding config.json +
-    model.safetensors (a directory comes first)."""
-    path = Path(name_or_path)
-    if not shipped_only and (path / WEIGHTS_FILE).is_file():
-        return path
-    shipped = SHIPPED_DIR / str(name_or_path)
-    if re.fullmatch(r"[A-Za-z0-9_.-]+", str(name_or_path)) and (shipped / WEIGHTS_FILE).is_file():
-        return shipped
-    available = ", ".join(shipped_models()) or "none shipped"
-    raise ModelError(f"model {str(name_or_path)!r} not found (a directory with {WEIGHTS_FILE} + {CONFIG_FILE}, "
-                     f"or a shipped model: {available})")
+def network_from_tensors(config: ModelConfig, tensors: dict[str, np.ndarray]) -> Autoencoder:
+    """The torch network of a config and its tensors by state-dict name (every tensor, none missing)."""
+    network = Autoencoder(config)
+    try:
+        network.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in tensors.items()}, strict=True)
+    except RuntimeError as exc:
+        raise ModelError(str(exc).splitlines()[0]) from None
+    return network
 
 
 def load_network(model_dir: Path) -> tuple[Autoencoder, str]:
     """Build the network from config.json and load its weights. Returns (network, SHA-256 of the weights file)."""
-    model_dir = Path(model_dir)
-    config = ModelConfig.load(model_dir / CONFIG_FILE)
-    network = Autoencoder(config)
-    weights_path = model_dir / WEIGHTS_FILE
+    config, tensors, sha = read_weights(model_dir)
     try:
-        state = load_file(str(weights_path))
-        network.load_state_dict(state, strict=True)
-    except (RuntimeError, OSError, ValueError) as exc:
-        raise ModelError(f"cannot load weights {weights_path}: {str(exc).splitlines()[0]}") from None
-    return network, hashlib.sha256(weights_path.read_bytes()).hexdigest()
-
-
-def load_model(name_or_path: str | Path = "e1", device: str = "cpu", shipped_only: bool = False) -> CompressionModel:
-    """Load a shipped or saved model for compression (eval mode); shipped_only refuses paths (names read from
-    files)."""
-    model_dir = resolve_model_dir(name_or_path, shipped_only)
-    network, sha = load_network(model_dir)
-    return CompressionModel(network, network.config.name, sha, device=device)
+        return network_from_tensors(config, tensors), sha
+    except ModelError as exc:
+        raise ModelError(f"cannot load weights {Path(model_dir) / WEIGHTS_FILE}: {exc}") from None
 
 
 # --- import of the reference implementation's released checkpoints ------------------------------------------------

@@ -9,30 +9,16 @@ import torch
 from torch import nn
 
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
-from mapsqueeze.geometry.jit import compiled
-from mapsqueeze.geometry.threads import run_over_ranges
-
-
-def grid_kernel_points(radius: float, num_kernel_points: int = 27) -> np.ndarray:
-    """Kernel points on a regular n x n x n grid inside the sphere of `radius` (corners at distance radius)."""
-    n = round(num_kernel_points ** (1 / 3))
-    if n**3 != num_kernel_points:
-        raise ValueError(f"num_kernel_points must be a cube, got {num_kernel_points}")
-    axis = np.linspace(-1.0, 1.0, n)
-    mesh = np.meshgrid(axis, axis, axis)  # 'xy' indexing: the reference's kernel order
-    points = np.stack([m.reshape(-1) for m in mesh], axis=1) / math.sqrt(3.0)
-    return (points * radius).astype(np.float32)
+from mapsqueeze.model.kernels import cpu_influences, grid_kernel_points, kernel_sigma, query_chunk
 
 
 class KPConv(nn.Module):
     """Rigid kernel point convolution with linear influence max(0, 1 - d / sigma) (eq. 1-2)."""
 
-    CHUNK_ELEMENTS = 1 << 21  # (query, neighbour, kernel point) triples evaluated at once
-
     def __init__(self, in_dim: int, out_dim: int, radius: float, num_kernel_points: int = 27):
         super().__init__()
         self.radius = radius
-        self.sigma = radius / (round(num_kernel_points ** (1 / 3)) - 1) * 1.5  # kernel point influence extent
+        self.sigma = kernel_sigma(radius, num_kernel_points)  # kernel point influence extent
         self.weights = nn.Parameter(torch.empty(num_kernel_points, in_dim, out_dim))
         nn.init.kaiming_uniform_(self.weights, a=math.sqrt(5))
         self.register_buffer("kernel_points", torch.from_numpy(grid_kernel_points(radius, num_kernel_points)))
@@ -40,13 +26,11 @@ class KPConv(nn.Module):
     def forward(self, queries: torch.Tensor, source: torch.Tensor, neighbors: torch.Tensor, features: torch.Tensor):
         """queries (Q,3), source (N,3), neighbors (Q,K) indices into source (N = shadow), features (N,C) -> (Q,D).
 
-        Queries are processed in chunks of about CHUNK_ELEMENTS (query, neighbour, kernel point) triples: the
-        (Q, M, K) influence tensors then stay in cache instead of being allocated whole (~6x faster on CPU).
-        The influences depend on the point positions only, which are inputs (no gradient flows to them); on the
-        CPU a compiled kernel computes them, elsewhere torch.
+        Queries are processed in chunks (`kernels.query_chunk`). The influences depend on the point positions only,
+        which are inputs (no gradient flows to them); on the CPU a compiled kernel computes them, elsewhere torch.
         """
         padded_features = torch.cat([features, torch.zeros_like(features[:1])], dim=0)
-        chunk = max(1, self.CHUNK_ELEMENTS // max(1, neighbors.shape[1] * len(self.kernel_points)))
+        chunk = query_chunk(neighbors.shape[1], len(self.kernel_points))
         influences = self._cpu_influences if queries.device.type == "cpu" else self._torch_influences
         geometry = (queries.detach(), source.detach(), neighbors)
         weighted = torch.cat([torch.matmul(influences(*geometry, s, min(len(queries), s + chunk)),
@@ -55,13 +39,9 @@ class KPConv(nn.Module):
         return weighted.reshape(len(weighted), -1) @ self.weights.reshape(-1, self.weights.shape[2])  # sum over m, c
 
     def _cpu_influences(self, queries, source, neighbors, first: int, stop: int) -> torch.Tensor:
-        """Influence max(0, 1 - |y - x - x_m| / sigma) of each neighbour y of queries x in [first, stop) on each
-        kernel point x_m: (stop - first, M, K) float32, 0 for shadow neighbours. Threads over query ranges."""
-        out = torch.empty(stop - first, len(self.kernel_points), neighbors.shape[1], dtype=torch.float32)
+        """`kernels.cpu_influences` of queries [first, stop) as a tensor."""
         arrays = (np.ascontiguousarray(t.numpy()) for t in (queries, source, neighbors, self.kernel_points))
-        args = (*arrays, np.float32(self.sigma), first)
-        run_over_ranges(lambda a, b: _influence_kernel(*args, first + a, first + b, out.numpy()), stop - first, 64)
-        return out
+        return torch.from_numpy(cpu_influences(*arrays, self.sigma, first, stop))
 
     def _torch_influences(self, queries, source, neighbors, first: int, stop: int) -> torch.Tensor:
         """The same influences as _cpu_influences, with torch operations (GPU)."""
@@ -72,25 +52,6 @@ class KPConv(nn.Module):
                         - 2.0 * torch.matmul(relative, self.kernel_points.T))  # (Q, K, M)
         distances = torch.sqrt(torch.clamp(sq_distances, min=0.0))
         return torch.clamp(1.0 - distances / self.sigma, min=0.0).transpose(1, 2)  # (Q, M, K)
-
-
-@compiled
-def _influence_kernel(queries, source, neighbors, kernel_points, sigma, offset, first, stop, out):
-    """Fills out[q - offset] for queries q in [first, stop) (see KPConv._cpu_influences)."""
-    n_neighbors = neighbors.shape[1]
-    relative = np.empty((3, n_neighbors), dtype=np.float32)  # one row per axis: the k loop below vectorises
-    for q in range(first, stop):
-        for k in range(n_neighbors):
-            n = neighbors[q, k]
-            for a in range(3):  # a shadow neighbour sits 1e6 away: influence 0
-                relative[a, k] = source[n, a] - queries[q, a] if n < source.shape[0] else np.float32(1e6)
-        for m in range(kernel_points.shape[0]):
-            for k in range(n_neighbors):
-                dx = relative[0, k] - kernel_points[m, 0]
-                dy = relative[1, k] - kernel_points[m, 1]
-                dz = relative[2, k] - kernel_points[m, 2]
-                weight = np.float32(1.0) - np.sqrt(dx * dx + dy * dy + dz * dz) / sigma
-                out[q - offset, m, k] = weight if weight > np.float32(0.0) else np.float32(0.0)
 
 
 class EncoderBlock(nn.Module):

@@ -1,0 +1,209 @@
+"""The autoencoder's forward pass on numpy: what compress, decompress and eval run on the CPU, without torch.
+
+It reads the weights file's tensors under the names of the torch modules' state dict (`autoencoder.Autoencoder`,
+which trains, refines embeddings and runs on GPUs) and computes the same layers in eval mode: batch norms with
+their running statistics, folded into the linear layer before them. A file with a tensor this forward does not read,
+one it lacks or one of another shape is refused, so the two forwards cannot drift apart silently; the tests compare
+their outputs for every shipped model (tests/test_inference.py). Matrix products run on one BLAS thread
+(`one_blas_thread`) and the compiled kernels over independent rows: the output does not depend on the thread count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapsqueeze.errors import ModelError
+from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
+from mapsqueeze.geometry.threads import one_blas_thread
+from mapsqueeze.model.config import ModelConfig
+from mapsqueeze.model.kernels import cpu_influences, kernel_sigma, query_chunk
+
+BATCH_NORM_EPS = 1e-5
+"""torch.nn.BatchNorm1d's default epsilon, which the network uses."""
+
+DECODE_ROWS = 1 << 15
+"""Points of the last deconvolution's input per pass: the decoder runs on groups of embedding points (each point's
+children depend on it alone), so its hidden layers take ~40 MB whatever the tile's size."""
+
+Affine = tuple[np.ndarray, np.ndarray]
+"""(W (in, out), b (out,)) float32: x -> x @ W + b."""
+
+
+class _Tensors:
+    """The weights file's tensors by state-dict name; `take` checks each one's shape and records it as read."""
+
+    def __init__(self, tensors: dict[str, np.ndarray]):
+        self.tensors = tensors
+        self.read: set[str] = set()
+
+    def has(self, name: str) -> bool:
+        return name in self.tensors
+
+    def take(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
+        if name not in self.tensors:
+            raise ModelError(f"weights lack tensor {name!r}")
+        value = np.asarray(self.tensors[name])
+        if value.shape != shape:
+            raise ModelError(f"weights tensor {name!r} has shape {value.shape}, the architecture {shape}")
+        self.read.add(name)
+        return value.astype(np.float32)
+
+    def linear(self, name: str, n_in: int, n_out: int) -> Affine:
+        """torch.nn.Linear `name` as (W, b)."""
+        return (np.ascontiguousarray(self.take(f"{name}.weight", (n_out, n_in)).T),
+                self.take(f"{name}.bias", (n_out,)))
+
+    def batch_norm(self, name: str, n: int) -> Affine:
+        """torch.nn.BatchNorm1d `name` in eval mode as a per-channel (scale, shift)."""
+        self.read.add(f"{name}.num_batches_tracked")  # training state only
+        scale = self.take(f"{name}.weight", (n,)) / np.sqrt(self.take(f"{name}.running_var", (n,)) + BATCH_NORM_EPS)
+        shift = self.take(f"{name}.bias", (n,)) - self.take(f"{name}.running_mean", (n,)) * scale
+        return scale.astype(np.float32), shift.astype(np.float32)
+
+    def linear_batch_norm(self, linear: str, norm: str, n_in: int, n_out: int) -> Affine:
+        """Linear `linear` followed by BatchNorm1d `norm`, as one (W, b)."""
+        (weight, bias), (scale, shift) = self.linear(linear, n_in, n_out), self.batch_norm(norm, n_out)
+        return (weight * scale).astype(np.float32), (bias * scale + shift).astype(np.float32)
+
+    def check_all_read(self) -> None:
+        unread = sorted(set(self.tensors) - self.read)
+        if unread:
+            raise ModelError(f"weights hold tensors the architecture does not have: {', '.join(unread[:5])}")
+
+
+def _affine(x: np.ndarray, layer: Affine) -> np.ndarray:
+    out = x @ layer[0]
+    out += layer[1]
+    return out
+
+
+def _leaky_relu(x: np.ndarray, slope: np.float32) -> np.ndarray:
+    """In place: x where x > 0, else slope * x."""
+    np.maximum(x, x * slope, out=x)
+    return x
+
+
+@dataclass
+class _EncoderBlock:
+    """Weights of `kpconv.EncoderBlock` (normalised units)."""
+
+    grid_size: float
+    kernel_radius: float
+    max_neighbors: int
+    kernel_points: np.ndarray  # (M, 3)
+    sigma: float
+    kernel_weights: np.ndarray  # (M * C, D): the sum over kernel points and input channels as one product
+    preactivation: Affine | None  # linear + batch norm, then LeakyReLU; None when the block's input has 1 channel
+    post_norm: Affine  # batch norm (scale, shift), then LeakyReLU
+    post_linear: Affine  # linear + batch norm
+    shortcut: Affine | None  # linear + batch norm; None: identity
+
+
+@dataclass
+class _Deconv:
+    """Weights of `deconv.AdaptiveDeconv`: both MLPs' first layers as one product (the same input)."""
+
+    factor: int
+    hidden: int
+    first: Affine  # (in, 2 * hidden): offset MLP's hidden units, then the feature MLP's
+    offset: Affine  # (hidden, 3 * factor)
+    feature: Affine  # (hidden, out * factor)
+
+
+class InferenceNetwork:
+    """Encoder and decoder of one rate point on numpy; coordinates normalised (tile-local metres / map_size)."""
+
+    def __init__(self, config: ModelConfig, tensors: dict[str, np.ndarray]):
+        self.config = config
+        self.slope = np.float32(config.leaky_relu_slope)
+        self.offset_scale = np.float32(config.decoder_kernel_radius)
+        weights = _Tensors(tensors)
+        self.encoder = self._encoder_blocks(config, weights)
+        self.embedding = weights.linear("encoder.embedding", config.encoder_dims[-1], config.embedding_dim)
+        dims = [config.embedding_dim] + [config.decoder_dim] * len(config.upsampling_factors)
+        self.decoder = [self._deconv(weights, f"decoder.blocks.{i}", dims[i], dims[i + 1], factor)
+                        for i, factor in enumerate(config.upsampling_factors)]
+        self.refine = weights.linear("decoder.refine", config.decoder_dim, 3)
+        weights.check_all_read()
+
+    @staticmethod
+    def _encoder_blocks(config: ModelConfig, weights: _Tensors) -> list[_EncoderBlock]:
+        dims = (1,) + config.encoder_dims
+        m = config.num_kernel_points
+        blocks = []
+        for i, (grid, radius) in enumerate(zip(config.block_grid_sizes(), config.block_kernel_radii())):
+            name, n_in, n_out = f"encoder.blocks.{i}", dims[i], dims[i + 1]
+            conv_in = n_out if n_in > 1 else n_in
+            radius = radius / config.map_size
+            blocks.append(_EncoderBlock(
+                grid / config.map_size, radius, config.max_neighbors[i],
+                weights.take(f"{name}.kp_conv.kernel_points", (m, 3)), kernel_sigma(radius, m),
+                weights.take(f"{name}.kp_conv.weights", (m, conv_in, n_out)).reshape(m * conv_in, n_out),
+                weights.linear_batch_norm(f"{name}.preactivation.0", f"{name}.preactivation.1", n_in, n_out)
+                if n_in > 1 else None,
+                weights.batch_norm(f"{name}.post_layer.0", n_out),
+                weights.linear_batch_norm(f"{name}.post_layer.2", f"{name}.post_layer.3", n_out, n_out),
+                weights.linear_batch_norm(f"{name}.shortcut.0", f"{name}.shortcut.1", n_in, n_out)
+                if n_in != n_out else None))
+        return blocks
+
+    def _deconv(self, weights: _Tensors, name: str, n_in: int, n_out: int, factor: int) -> _Deconv:
+        hidden = self.config.decoder_hidden
+        offset_first = weights.linear(f"{name}.offset_mlp.0", n_in, hidden)
+        feature_first = weights.linear(f"{name}.feature_mlp.0", n_in, hidden)
+        first = (np.ascontiguousarray(np.concatenate([offset_first[0], feature_first[0]], axis=1)),
+                 np.concatenate([offset_first[1], feature_first[1]]))
+        return _Deconv(factor, hidden, first, weights.linear(f"{name}.offset_mlp.2", hidden, 3 * factor),
+                       weights.linear(f"{name}.feature_mlp.2", hidden, n_out * factor))
+
+    def encode(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """points (N, 3) float32 normalised -> embedding points (M, 3), features (M, embedding_dim) float32."""
+        points = np.ascontiguousarray(points, dtype=np.float32)
+        features = np.ones((len(points), 1), dtype=np.float32)  # occupancy
+        with one_blas_thread():
+            for block in self.encoder:
+                points, features = self._encoder_block(block, points, features)
+            return points, _affine(features, self.embedding)
+
+    def _encoder_block(self, block: _EncoderBlock, points: np.ndarray, features: np.ndarray):
+        """`kpconv.EncoderBlock.forward`: grid subsampling, KPConv of the capped radius neighbours, ResNet sum."""
+        kept = grid_subsample(points, block.grid_size)
+        queries = np.ascontiguousarray(points[kept])
+        neighbors = radius_neighbors(points, queries, block.kernel_radius, block.max_neighbors)
+        conv_input = features if block.preactivation is None else _leaky_relu(
+            _affine(features, block.preactivation), self.slope)
+        padded = np.concatenate([conv_input, np.zeros((1, conv_input.shape[1]), dtype=np.float32)])
+        conv = np.empty((len(queries), block.kernel_weights.shape[1]), dtype=np.float32)
+        chunk = query_chunk(neighbors.shape[1], len(block.kernel_points))
+        for first in range(0, len(queries), chunk):
+            stop = min(len(queries), first + chunk)
+            influences = cpu_influences(queries, points, neighbors, block.kernel_points, block.sigma, first, stop)
+            weighted = np.matmul(influences, padded[neighbors[first:stop]])  # (Q, M, C)
+            conv[first:stop] = weighted.reshape(stop - first, -1) @ block.kernel_weights
+        hidden = _leaky_relu(conv * block.post_norm[0] + block.post_norm[1], self.slope)
+        out = _affine(hidden, block.post_linear)
+        out += features[kept] if block.shortcut is None else _affine(features[kept], block.shortcut)
+        return queries, _leaky_relu(out, self.slope)
+
+    def decode(self, points: np.ndarray, features: np.ndarray) -> np.ndarray:
+        """Embedding points (M, 3) and features (M, embedding_dim), normalised -> output points (M x prod(K_i), 3)
+        float32 normalised, children in the order of their parents."""
+        points = np.ascontiguousarray(points, dtype=np.float32)
+        features = np.ascontiguousarray(features, dtype=np.float32)
+        group = max(1, DECODE_ROWS // int(np.prod(self.config.upsampling_factors[:-1], dtype=np.int64)))
+        with one_blas_thread():
+            parts = [self._decode_group(points[s:s + group], features[s:s + group])
+                     for s in range(0, len(points), group)]
+        return np.concatenate(parts) if parts else np.zeros((0, 3), dtype=np.float32)
+
+    def _decode_group(self, points: np.ndarray, features: np.ndarray) -> np.ndarray:
+        for block in self.decoder:
+            n = len(points)
+            hidden = _leaky_relu(_affine(features, block.first), self.slope)
+            offsets = np.tanh(_affine(hidden[:, :block.hidden], block.offset)).reshape(n, block.factor, 3)
+            points = (points[:, None, :] + offsets * self.offset_scale).reshape(n * block.factor, 3)
+            features = _leaky_relu(_affine(hidden[:, block.hidden:], block.feature), self.slope).reshape(
+                n * block.factor, -1)
+        return points + _affine(features, self.refine)

@@ -1,0 +1,67 @@
+"""The KPConv geometry both forwards share (torch's `kpconv.KPConv` and numpy's `inference.InferenceNetwork`):
+kernel points, their influence extent and the compiled kernel of the influences on the CPU."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapsqueeze.geometry.jit import compiled
+from mapsqueeze.geometry.threads import run_over_ranges
+
+CHUNK_ELEMENTS = 1 << 21
+"""(query, neighbour, kernel point) triples of one chunk of queries: the (Q, M, K) influences then stay in cache
+instead of being allocated whole (~6x faster on the CPU)."""
+
+
+def grid_kernel_points(radius: float, num_kernel_points: int = 27) -> np.ndarray:
+    """Kernel points on a regular n x n x n grid inside the sphere of `radius` (corners at distance radius)."""
+    n = round(num_kernel_points ** (1 / 3))
+    if n**3 != num_kernel_points:
+        raise ValueError(f"num_kernel_points must be a cube, got {num_kernel_points}")
+    axis = np.linspace(-1.0, 1.0, n)
+    mesh = np.meshgrid(axis, axis, axis)  # 'xy' indexing: the reference's kernel order
+    points = np.stack([m.reshape(-1) for m in mesh], axis=1) / math.sqrt(3.0)
+    return (points * radius).astype(np.float32)
+
+
+def kernel_sigma(radius: float, num_kernel_points: int) -> float:
+    """Influence extent of each kernel point: 1.5 grid spacings of the kernel (units of `radius`)."""
+    return radius / (round(num_kernel_points ** (1 / 3)) - 1) * 1.5
+
+
+def query_chunk(n_neighbors: int, n_kernel_points: int) -> int:
+    """Queries per chunk (CHUNK_ELEMENTS triples)."""
+    return max(1, CHUNK_ELEMENTS // max(1, n_neighbors * n_kernel_points))
+
+
+def cpu_influences(queries: np.ndarray, source: np.ndarray, neighbors: np.ndarray, kernel_points: np.ndarray,
+                   sigma: float, first: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Influence max(0, 1 - |y - x - x_m| / sigma) of each neighbour y of queries x in [first, stop) on each kernel
+    point x_m: (stop - first, M, K) float32 (written into `out` when given), 0 for shadow neighbours (index
+    len(source)). Arrays float32 / int64, C-contiguous; threads over query ranges (`run_over_ranges`)."""
+    if out is None:
+        out = np.empty((stop - first, len(kernel_points), neighbors.shape[1]), dtype=np.float32)
+    args = (queries, source, neighbors, kernel_points, np.float32(sigma), first)
+    run_over_ranges(lambda a, b: _influence_kernel(*args, first + a, first + b, out), stop - first, 64)
+    return out
+
+
+@compiled
+def _influence_kernel(queries, source, neighbors, kernel_points, sigma, offset, first, stop, out):
+    """Fills out[q - offset] for queries q in [first, stop) (see cpu_influences)."""
+    n_neighbors = neighbors.shape[1]
+    relative = np.empty((3, n_neighbors), dtype=np.float32)  # one row per axis: the k loop below vectorises
+    for q in range(first, stop):
+        for k in range(n_neighbors):
+            n = neighbors[q, k]
+            for a in range(3):  # a shadow neighbour sits 1e6 away: influence 0
+                relative[a, k] = source[n, a] - queries[q, a] if n < source.shape[0] else np.float32(1e6)
+        for m in range(kernel_points.shape[0]):
+            for k in range(n_neighbors):
+                dx = relative[0, k] - kernel_points[m, 0]
+                dy = relative[1, k] - kernel_points[m, 1]
+                dz = relative[2, k] - kernel_points[m, 2]
+                weight = np.float32(1.0) - np.sqrt(dx * dx + dy * dy + dz * dz) / sigma
+                out[q - offset, m, k] = weight if weight > np.float32(0.0) else np.float32(0.0)
