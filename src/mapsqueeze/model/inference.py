@@ -18,7 +18,7 @@ from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
 from mapsqueeze.geometry.threads import one_blas_thread
 from mapsqueeze.model.config import ModelConfig
-from mapsqueeze.model.kernels import cpu_influences, kernel_sigma, query_chunk
+from mapsqueeze.model.kernels import bias_leaky_relu, cpu_influences, kernel_sigma, query_chunk
 
 BATCH_NORM_EPS = 1e-5
 """torch.nn.BatchNorm1d's default epsilon, which the network uses."""
@@ -79,10 +79,11 @@ def _affine(x: np.ndarray, layer: Affine) -> np.ndarray:
     return out
 
 
-def _leaky_relu(x: np.ndarray, slope: np.float32) -> np.ndarray:
-    """In place: x where x > 0, else slope * x."""
-    np.maximum(x, x * slope, out=x)
-    return x
+def _affine_leaky_relu(x: np.ndarray, layer: Affine, slope: np.float32) -> np.ndarray:
+    """LeakyReLU(x @ W + b)."""
+    out = x @ layer[0]
+    bias_leaky_relu(out, layer[1], slope)
+    return out
 
 
 @dataclass
@@ -172,8 +173,8 @@ class InferenceNetwork:
         kept = grid_subsample(points, block.grid_size)
         queries = np.ascontiguousarray(points[kept])
         neighbors = radius_neighbors(points, queries, block.kernel_radius, block.max_neighbors)
-        conv_input = features if block.preactivation is None else _leaky_relu(
-            _affine(features, block.preactivation), self.slope)
+        conv_input = features if block.preactivation is None else _affine_leaky_relu(
+            features, block.preactivation, self.slope)
         padded = np.concatenate([conv_input, np.zeros((1, conv_input.shape[1]), dtype=np.float32)])
         conv = np.empty((len(queries), block.kernel_weights.shape[1]), dtype=np.float32)
         chunk = query_chunk(neighbors.shape[1], len(block.kernel_points))
@@ -182,10 +183,12 @@ class InferenceNetwork:
             influences = cpu_influences(queries, points, neighbors, block.kernel_points, block.sigma, first, stop)
             weighted = np.matmul(influences, padded[neighbors[first:stop]])  # (Q, M, C)
             conv[first:stop] = weighted.reshape(stop - first, -1) @ block.kernel_weights
-        hidden = _leaky_relu(conv * block.post_norm[0] + block.post_norm[1], self.slope)
-        out = _affine(hidden, block.post_linear)
+        conv *= block.post_norm[0]
+        bias_leaky_relu(conv, block.post_norm[1], self.slope)
+        out = _affine(conv, block.post_linear)
         out += features[kept] if block.shortcut is None else _affine(features[kept], block.shortcut)
-        return queries, _leaky_relu(out, self.slope)
+        bias_leaky_relu(out, np.zeros(out.shape[1], dtype=np.float32), self.slope)
+        return queries, out
 
     def decode(self, points: np.ndarray, features: np.ndarray) -> np.ndarray:
         """Embedding points (M, 3) and features (M, embedding_dim), normalised -> output points (M x prod(K_i), 3)
@@ -201,9 +204,9 @@ class InferenceNetwork:
     def _decode_group(self, points: np.ndarray, features: np.ndarray) -> np.ndarray:
         for block in self.decoder:
             n = len(points)
-            hidden = _leaky_relu(_affine(features, block.first), self.slope)
+            hidden = _affine_leaky_relu(features, block.first, self.slope)
             offsets = np.tanh(_affine(hidden[:, :block.hidden], block.offset)).reshape(n, block.factor, 3)
             points = (points[:, None, :] + offsets * self.offset_scale).reshape(n * block.factor, 3)
-            features = _leaky_relu(_affine(hidden[:, block.hidden:], block.feature), self.slope).reshape(
+            features = _affine_leaky_relu(hidden[:, block.hidden:], block.feature, self.slope).reshape(
                 n * block.factor, -1)
         return points + _affine(features, self.refine)
