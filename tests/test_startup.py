@@ -11,3 +11,20 @@ def test_loading_the_command_line_imports_no_heavy_library():
     probe = "import sys, mapsqueeze.cli; print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))"
     loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split()
     assert not set(HEAVY) & set(loaded)
+
+
+def test_info_imports_no_heavy_library(tmp_path):
+    import numpy as np
+
+    import mapsqueeze
+
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.random((3000, 2)) * 30, rng.normal(1, 0.05, 3000)]
+    (tmp_path / "map.msq").write_bytes(mapsqueeze.compress(points, model="e0", workers=1))
+    probe = ("import sys\nfrom mapsqueeze.cli import main\nsys.argv = ['mapsqueeze', 'info', sys.argv[1]]\n"
+             "try:\n    main()\nexcept SystemExit as exit:\n    assert not exit.code, exit.code\n"
+             "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))")
+    result = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "map.msq")], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    loaded = result.stdout.split()
+    assert "mapsqueeze" in loaded and not set(HEAVY) & set(loaded)

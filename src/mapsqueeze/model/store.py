@@ -1,5 +1,6 @@
 """Models on disk without torch: config.json + model.safetensors (never pickle), the shipped models, loading a
-`CompressionModel`. Writing weights and building the torch network from them: `checkpoint`."""
+`CompressionModel` (imported then: naming the shipped models needs neither numba nor torch). Writing weights and
+building the torch network from them: `checkpoint`."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from mapsqueeze.errors import ModelError
-from mapsqueeze.model.compression import CompressionModel
 from mapsqueeze.model.config import ModelConfig
 
 WEIGHTS_FILE = "model.safetensors"
@@ -62,9 +62,11 @@ def read_weights(model_dir: Path) -> tuple[ModelConfig, dict[str, np.ndarray], s
     return config, tensors, hashlib.sha256(data).hexdigest()
 
 
-def load_model(name_or_path: str | Path = "e1", device: str = "cpu", shipped_only: bool = False) -> CompressionModel:
-    """Load a shipped or saved model for compression; shipped_only refuses paths (names read from files). On the
-    CPU this imports no torch (`CompressionModel`)."""
+def load_model(name_or_path: str | Path = "e1", device: str = "cpu", shipped_only: bool = False):
+    """Load a shipped or saved `CompressionModel`; shipped_only refuses paths (names read from files). On the CPU
+    this imports no torch."""
+    from mapsqueeze.model.compression import CompressionModel
+
     model_dir = resolve_model_dir(name_or_path, shipped_only)
     config, tensors, sha = read_weights(model_dir)
     try:
