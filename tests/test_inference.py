@@ -78,6 +78,20 @@ def test_numpy_forward_matches_torch_with_random_weights(rate):
     assert_forwards_agree(network, street_tile(8000, seed=2))
 
 
+def test_the_torch_passes_of_other_devices_agree_with_the_numpy_forward():
+    """`torch_encode` / `torch_decode` (what a model on a GPU runs) here on the CPU network."""
+    from mapsqueeze.model.autoencoder import torch_decode, torch_encode
+
+    model = load_model("e0")
+    points = street_tile(8000, seed=4)
+    emb_points, emb_features = torch_encode(model.network, points)
+    expected_points, expected_features = model.inference.encode(points)
+    np.testing.assert_array_equal(emb_points, expected_points)
+    assert np.abs(emb_features - expected_features).max() < FEATURE_TOLERANCE
+    output = torch_decode(model.network, expected_points, expected_features)
+    assert np.abs(output - model.inference.decode(expected_points, expected_features)).max() < POINT_TOLERANCE
+
+
 def test_weights_that_do_not_match_the_architecture_are_refused(tmp_path):
     from safetensors.numpy import load_file, save_file
 
