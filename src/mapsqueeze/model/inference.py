@@ -25,7 +25,7 @@ BATCH_NORM_EPS = 1e-5
 
 DECODE_ROWS = 1 << 15
 """Points of the last deconvolution's input per pass: the decoder runs on groups of embedding points (each point's
-children depend on it alone), so its hidden layers take ~40 MB whatever the tile's size."""
+children depend on it alone), so its activations take at most ~80 MB whatever the tile's size."""
 
 Affine = tuple[np.ndarray, np.ndarray]
 """(W (in, out), b (out,)) float32: x -> x @ W + b."""
