@@ -12,7 +12,7 @@ from mapsqueeze.api import compress, decompress
 from mapsqueeze.io import atomic_write_bytes, read_points
 from mapsqueeze.metrics import evaluate
 from mapsqueeze.model import load_model
-from mapsqueeze.model.store import SHIPPED_DIR
+from mapsqueeze.model.shipped import SHIPPED_DIR
 from mapsqueeze.shared import real_submaps_dir
 
 REFINE_STEPS = (0, 20)  # the paper's encoder, and `compress --refine 20`

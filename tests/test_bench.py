@@ -64,7 +64,7 @@ def test_bench_cli_rejects_missing_input_and_bad_refinement(tmp_path):
 
 
 def test_the_four_shipped_models_load_and_are_listed():
-    from mapsqueeze.model.store import SHIPPED_DIR
+    from mapsqueeze.model.shipped import SHIPPED_DIR
 
     assert shipped_models() == ["e0", "e1", "e2", "e3"]
     for name, r_s in zip(("e0", "e1", "e2", "e3"), (3.0, 2.0, 1.2, 1.0)):

@@ -138,7 +138,7 @@ def decompress_command(
 @app.command("info")
 def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq file")) -> None:
     """Show a .msq file's model, tiles, sizes, bits per point and origin."""
-    from mapsqueeze.model.store import shipped_weights_sha256
+    from mapsqueeze.model.shipped import shipped_weights_sha256
 
     summary = api.info(msq)
     if shipped_weights_sha256(summary.model_id) == summary.weights_sha256:

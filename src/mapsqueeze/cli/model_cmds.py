@@ -108,7 +108,7 @@ def train_cmd(
 def models_cmd():
     """List the models shipped with the package."""
     from mapsqueeze.model import load_network, shipped_models
-    from mapsqueeze.model.store import SHIPPED_DIR
+    from mapsqueeze.model.shipped import SHIPPED_DIR
 
     table = Table(title="shipped models")
     for col in ("name", "r_s (m)", "upsampling", "val Chamfer (m^2)", "last training run (history: model card)"):

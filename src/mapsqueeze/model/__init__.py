@@ -9,7 +9,7 @@ import importlib
 _MODULE_OF = {
     "CompressionModel": "compression", "Embedding": "compression",
     "RATE_SUBSAMPLING_M": "config", "ModelConfig": "config", "density_law": "config", "density_law_factors": "config",
-    "load_model": "store", "shipped_models": "store",
+    "load_model": "shipped", "shipped_models": "shipped",
     "Autoencoder": "autoencoder", "import_reference": "checkpoint", "load_network": "checkpoint",
     "save_model": "checkpoint",
 }

@@ -1,4 +1,4 @@
-"""The torch network and its weights on disk: saving, loading (`store` reads them without torch), import of the
+"""The torch network and its weights on disk: saving, loading (`shipped` reads them without torch), import of the
 reference checkpoints."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from safetensors.torch import save_file
 from mapsqueeze.errors import ModelError
 from mapsqueeze.model.autoencoder import Autoencoder
 from mapsqueeze.model.config import ModelConfig
-from mapsqueeze.model.store import CONFIG_FILE, WEIGHTS_FILE, read_weights
+from mapsqueeze.model.shipped import CONFIG_FILE, WEIGHTS_FILE, read_weights
 
 
 def save_model(network: Autoencoder, out_dir: Path) -> Path:
