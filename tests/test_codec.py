@@ -648,3 +648,25 @@ def test_bbox_decode_of_a_real_map_holds_at_least_the_original_count_in_the_box(
         decoded = mapsqueeze.decompress(data, bbox=tuple(box), workers=1)
         assert ((decoded >= box[:3]) & (decoded <= box[3:])).all()
         assert len(decoded) >= original > 1000
+
+
+@pytest.mark.parametrize("leaf", [0.1, 0.4, 1.6])
+def test_own_leaf_distances_are_the_nearest_leaf_distances_wherever_known(leaf):
+    """Points on a wall, a floor and scattered ones, also on leaf faces and near the box's upper faces: every known
+    own-leaf distance is exactly the k-d tree's nearest-centre distance, and most points are known."""
+    from mapsqueeze.codec.octreetile import encode_octree_tile, own_leaf_distances
+    from mapsqueeze.codec.tilepoints import octree_points
+
+    rng = np.random.default_rng(3)
+    tile_size, extent = np.array([8.0, 8.0, 4.0]), np.array([7.5, 8.0, 3.3])
+    points = np.concatenate([rng.uniform(0, 1, (4000, 3)) * extent,
+                             np.column_stack([rng.uniform(0, 7.5, 2000), np.full(2000, 4.0), rng.uniform(0, 3.3, 2000)]),
+                             np.round(rng.uniform(0, 1, (500, 3)) * extent / leaf) * leaf]).astype(np.float32)
+    centres = octree_points(decode_octree_tile(encode_octree_tile(points, tile_size, leaf), tile_size, len(points),
+                                               "test"), extent, None)
+    nearest = cKDTree(centres.astype(np.float64)).query(points.astype(np.float64))[0]
+    own = own_leaf_distances(points, tile_size, leaf, extent)
+    known = ~np.isnan(own)
+    assert np.array_equal(own[known], nearest[known])
+    assert known.mean() > 0.3
+    assert not known[-500:].all()  # points on leaf faces are left to the search

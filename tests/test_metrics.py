@@ -9,7 +9,15 @@ from plyfile import PlyData, PlyElement
 
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.normals import normals_pca
-from mapsqueeze.metrics import bits_per_point, chamfer_distance, d_euclidean, d_point_to_plane, evaluate, iou
+from mapsqueeze.metrics import (
+    bits_per_point,
+    chamfer_distance,
+    d_euclidean,
+    d_point_to_plane,
+    evaluate,
+    iou,
+    nearest_tree,
+)
 
 UTM_OFFSET = np.array([456_789.0, 5_432_101.0, 42.0])  # world coordinates as large as real maps have
 SPACING = 0.1
@@ -188,3 +196,18 @@ def test_real_kitti_ground_normals_are_vertical(kitti_submap):
     assert np.isfinite(normals).all()
     lowest_decile = points[:, 2] < np.quantile(points[:, 2], 0.1)
     assert np.mean(np.abs(normals[lowest_decile, 2]) > 0.9) > 0.9
+
+
+def test_d_euclidean_gives_the_distances_of_scipys_tree_and_uses_known_ones():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    gt, rec = rng.normal(size=(3000, 3)), rng.normal(size=(2000, 3)).astype(np.float32).astype(np.float64)
+    rec[:10] = gt[:10]  # duplicates: distance 0
+    forward, backward = cKDTree(rec).query(gt)[0], cKDTree(gt).query(rec)[0]
+    assert d_euclidean(gt, rec) == forward.mean() / 2 + backward.mean() / 2
+    known = forward.copy()
+    known[::3] = np.nan
+    assert d_euclidean(gt, rec, nearest_tree(gt), known) == d_euclidean(gt, rec)
+    known[1] = 100.0  # a known distance is taken as given
+    assert d_euclidean(gt, rec, gt_to_rec=known) > d_euclidean(gt, rec)

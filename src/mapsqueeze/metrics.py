@@ -22,6 +22,7 @@ from mapsqueeze.geometry.normals import normals_pca
 from mapsqueeze.geometry.validation import validate_points
 
 if TYPE_CHECKING:
+    from pykdtree.kdtree import KDTree
     from scipy.spatial import cKDTree
 from mapsqueeze.geometry.voxel import pack_indices, voxel_indices
 
@@ -117,13 +118,33 @@ def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
     return _chamfer(_match(a, b, _kdtree(a)))
 
 
-def d_euclidean(gt: np.ndarray, rec: np.ndarray, gt_tree: cKDTree | None = None) -> float:
+def nearest_tree(points: np.ndarray) -> KDTree:
+    """A k-d tree of (N, 3) float64 points for `d_euclidean`'s `gt_tree` (pykdtree: the distances of scipy's
+    cKDTree, faster)."""
+    from pykdtree.kdtree import KDTree
+
+    return KDTree(np.ascontiguousarray(points, dtype=np.float64))
+
+
+def d_euclidean(gt: np.ndarray, rec: np.ndarray, gt_tree: KDTree | None = None,
+                gt_to_rec: np.ndarray | None = None) -> float:
     """D_e (eq. 9-10, d = ||x_i - x_j||_2) in metres: symmetric mean nearest-neighbour distance.
 
-    `gt_tree`: a cKDTree of `gt`, to reuse it across several reconstructions of the same cloud.
+    `gt_tree`: `nearest_tree(gt)`, to reuse it across several reconstructions of the same cloud. `gt_to_rec`: the
+    (N_gt,) distances from the gt points to their nearest rec point where the caller knows them (computed as the
+    search does: the square root of ((dx^2 + dy^2) + dz^2) in float64), NaN where they are to be searched.
     """
     gt, rec = validate_points(gt, "gt"), validate_points(rec, "rec")
-    return _d_euclidean(_match(gt, rec, _kdtree(gt) if gt_tree is None else gt_tree))
+    gt, rec = np.ascontiguousarray(gt), np.ascontiguousarray(rec)
+    if gt_to_rec is None:
+        gt_to_rec = nearest_tree(rec).query(gt, k=1)[0]
+    else:
+        unknown = np.isnan(gt_to_rec)
+        gt_to_rec = gt_to_rec.copy()
+        if unknown.any():
+            gt_to_rec[unknown] = nearest_tree(rec).query(gt[unknown], k=1)[0]
+    rec_to_gt = (nearest_tree(gt) if gt_tree is None else gt_tree).query(rec, k=1)[0]
+    return _symmetric_mean(gt_to_rec, rec_to_gt)
 
 
 def d_point_to_plane(gt: np.ndarray, rec: np.ndarray, gt_normals: np.ndarray | None = None) -> float:

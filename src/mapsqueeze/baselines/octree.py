@@ -18,7 +18,7 @@ import numpy as np
 
 from mapsqueeze.baselines.base import BaselineCodec, Setting, setting_number
 from mapsqueeze.errors import BaselineError, ContainerError
-from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes
+from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes, sorted_unique
 from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M, validate_points
 from mapsqueeze.geometry.voxel import voxel_indices
 
@@ -40,7 +40,9 @@ def _occupancy_levels(leaf_codes: np.ndarray, depth: int) -> list[np.ndarray]:
     levels = []
     codes = leaf_codes
     for _ in range(depth):
-        parents, first = np.unique(codes >> 3, return_index=True)
+        shifted = codes >> 3  # sorted: each parent's children are adjacent
+        first = np.flatnonzero(np.concatenate([[True], shifted[1:] != shifted[:-1]]))
+        parents = shifted[first]
         levels.append(np.bitwise_or.reduceat(np.left_shift(1, codes & 7), first).astype(np.uint8))
         codes = parents
     return levels[::-1]
@@ -70,7 +72,7 @@ def _arithmetic_encode(levels: list[np.ndarray]) -> bytes:
 
 def encode_occupancy(cells: np.ndarray, depth: int) -> tuple[int, bytes]:
     """(N, 3) integer leaf cells in [0, 2**depth) -> (leaf count, arithmetic-coded occupancy bytes of every level)."""
-    leaf_codes = np.unique(morton_codes(cells, depth))
+    leaf_codes = sorted_unique(morton_codes(cells, depth))
     return len(leaf_codes), _arithmetic_encode(_occupancy_levels(leaf_codes, depth))
 
 
@@ -105,7 +107,7 @@ class OctreeCodec(BaselineCodec):
                 f"(more than {MAX_DEPTH} octree levels)"
             )
         cells = np.clip(voxel_indices(points, leaf, origin), 0, (1 << depth) - 1)
-        leaf_codes = np.unique(morton_codes(cells, depth))
+        leaf_codes = sorted_unique(morton_codes(cells, depth))
         levels = _occupancy_levels(leaf_codes, depth)
         if self.entropy_coded:
             payload, coding = _arithmetic_encode(levels), _ARITHMETIC

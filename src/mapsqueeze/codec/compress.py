@@ -34,7 +34,7 @@ from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
 from mapsqueeze.codec.executor import open_executor
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
-from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, decode_octree_tile, encode_octree_tile
+from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, decode_octree_tile, encode_octree_tile, own_leaf_distances
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
 from mapsqueeze.codec.tilepoints import network_points, octree_points
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
@@ -42,7 +42,7 @@ from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
 from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.io import PointCloud, validate_attributes, work_dir
-from mapsqueeze.metrics import d_euclidean
+from mapsqueeze.metrics import d_euclidean, nearest_tree
 
 RAW_POINTS_PER_EMBEDDING = 4
 """A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
@@ -393,9 +393,7 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
     extent = np.subtract(hi, lo) * tile_size / BOUNDS_STEPS
     embedding = model.encode(local)
     n_embedding = len(embedding.points)
-    from scipy.spatial import cKDTree  # imported here: the CLI starts without scipy
-
-    tree = cKDTree(local)
+    tree = nearest_tree(local)
     candidates = []
     if target.given or len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
         raw = encode_raw_tile(local, tile_size)
@@ -406,8 +404,8 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
     for leaf in OCTREE_LEAVES_M if target.fallback else ():
         payload = encode_octree_tile(local, tile_size, leaf)
         decoded = octree_points(decode_octree_tile(payload, tile_size, len(local), "octree candidate"), extent, None)
-        candidates.append(Candidate(TileCoding.octree, payload, len(payload), d_euclidean(local, decoded, tree),
-                                    f"octree {leaf:g} m"))
+        d_e = d_euclidean(local, decoded, tree, own_leaf_distances(local, tile_size, leaf, extent))
+        candidates.append(Candidate(TileCoding.octree, payload, len(payload), d_e, f"octree {leaf:g} m"))
     if refine_steps:
         embedding = model.refine(local, embedding, refine_steps)
     network_d_e = d_euclidean(local, network_points(model, embedding.points, embedding.features, extent, None), tree)

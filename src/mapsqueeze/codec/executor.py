@@ -23,6 +23,11 @@ TileFunction = Callable[[Any, Any], Any]
 IN_FLIGHT_PER_WORKER = 2
 """Jobs submitted per worker ahead of the oldest unfinished one (keeps workers busy while results are collected)."""
 
+PRELOAD = ("mapsqueeze.codec.compress", "mapsqueeze.codec.decompress", "mapsqueeze.model.compression",
+           "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells")
+"""Modules the jobs use, imported once by the server the workers are forked from (numba, the numpy network, the
+octree coder), not by every worker."""
+
 DASK_RETRIES = 3
 """A Dask job whose worker dies is run again on another worker this many times before the whole run fails."""
 
@@ -61,8 +66,8 @@ class ProcessExecutor:
 
         self.workers = workers
         start = multiprocessing.get_context("forkserver")
-        start.set_forkserver_preload(["mapsqueeze.codec.compress", "mapsqueeze.codec.decompress", "mapsqueeze.model"])
-        _start_quiet_forkserver()
+        start.set_forkserver_preload(list(PRELOAD))
+        _start_quiet_forkserver(_threads_per_worker(workers))
         self._pool = ProcessPoolExecutor(workers, mp_context=start, initializer=_install_context,
                                          initargs=(context, _threads_per_worker(workers), _ParentStderr()))
 
@@ -148,19 +153,26 @@ def _threads_per_worker(workers: int) -> int:
 _context: Any = None
 
 
-def _start_quiet_forkserver() -> None:
+def _start_quiet_forkserver(threads: int) -> None:
     """Start the forkserver (once per process) with its stderr on the null device: a worker that is still being
     spawned when a signal or an error ends this process fails to load its spawn data and would print a traceback.
-    Each worker gets this process's stderr back in `_install_context`, once it has started."""
+    Each worker gets this process's stderr back in `_install_context`, once it has started. Unless the user set
+    OMP_NUM_THREADS, the server starts with it at `threads`, so that the OpenMP library it preloads (pykdtree's
+    k-d tree searches) runs one thread per worker's share of the cores instead of spinning on all of them."""
     import multiprocessing.forkserver
 
     sys.stderr.flush()
     saved = os.dup(2)
     null = os.open(os.devnull, os.O_WRONLY)
+    user_threads = os.environ.get("OMP_NUM_THREADS")
     try:
         os.dup2(null, 2)
+        if user_threads is None:
+            os.environ["OMP_NUM_THREADS"] = str(threads)
         multiprocessing.forkserver.ensure_running()
     finally:
+        if user_threads is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
         os.dup2(saved, 2)
         os.close(saved)
         os.close(null)

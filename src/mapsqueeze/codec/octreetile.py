@@ -19,6 +19,9 @@ OCTREE_LEAVES_M = (0.1, 0.2, 0.4, 0.8, 1.6)
 """Leaf edges (metres) the compressor tries for a tile's classical fallback (the benchmark's octree sweep)."""
 MIN_LEAF_M = 0.001
 """Smallest leaf edge a payload may state (metres)."""
+LEAF_MARGIN_M = 2e-4
+"""`own_leaf_distances` trusts a point's own leaf centre as its nearest only this far inside the leaf (metres):
+float32 centres are off their grid by under 3 microns in a 40 m tile, which shifts distances far less."""
 
 
 def octree_depth(tile_size: np.ndarray, leaf_m: float) -> int:
@@ -67,6 +70,18 @@ def decode_octree_tile(payload: bytes, tile_size: np.ndarray, max_points: int, w
     except ContainerError as exc:
         raise reader.fail(str(exc)) from None
     return ((cells + 0.5) * leaf_m).astype(np.float32)
+
+
+def own_leaf_distances(points_local: np.ndarray, tile_size: np.ndarray, leaf_m: float,
+                       extent_m: np.ndarray) -> np.ndarray:
+    """(N,) float64 distance (metres) from each point (relative to the tile frame) to the nearest leaf centre of
+    its octree at leaf_m as `tilepoints.octree_points` places them (inside [0, extent_m]), where that is the centre
+    of the point's own leaf (always occupied); NaN where it may not be (`geometry.cells.own_cell_distances`)."""
+    from mapsqueeze.geometry.cells import own_cell_distances  # imported here: the CLI starts without numba
+
+    leaf = float(np.float32(leaf_m))
+    return own_cell_distances(points_local, leaf, (1 << octree_depth(tile_size, leaf)) - 1,
+                              np.asarray(extent_m).astype(np.float32), LEAF_MARGIN_M)
 
 
 def octree_leaf_m(payload: bytes, what: str) -> float:

@@ -24,12 +24,14 @@ def validate_points(points, name: str = "point cloud") -> np.ndarray:
     if len(array) == 0:
         raise InvalidPointCloudError(f"{name}: the point cloud is empty")
     array = np.ascontiguousarray(array, dtype=np.float64)
-    finite = np.isfinite(array).all(axis=1)
-    if not finite.all():
+    flat = array.reshape(-1)
+    lowest, highest = flat.min(), flat.max()  # NaN and infinities propagate into them
+    if not (np.isfinite(lowest) and np.isfinite(highest)):
+        finite = np.isfinite(array).all(axis=1)
         raise InvalidPointCloudError(
             f"{name}: {np.count_nonzero(~finite):,} of {len(array):,} points have NaN or infinite coordinates"
         )
-    largest = float(np.abs(array).max())
+    largest = float(max(-lowest, highest))
     if largest >= MAX_ABS_COORDINATE_M:
         raise InvalidPointCloudError(
             f"{name}: absurd coordinate {largest:.6g} m (limit {MAX_ABS_COORDINATE_M:.0e} m from the origin)"

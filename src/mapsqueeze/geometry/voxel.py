@@ -12,6 +12,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.validation import validate_points
 
 _AXIS_BITS = 21  # 3 x 21 bits fit one int64 key: 2,097,152 voxels per axis (209 km at 10 cm)
@@ -62,10 +63,10 @@ def pack_indices(indices: np.ndarray, base: np.ndarray | None = None, bits: int 
     if len(indices) == 0:
         return np.empty(0, dtype=np.int64)
     if base is None:
-        base = indices.min(axis=0)
+        base = bounding_box(indices)[0]
     offsets = indices - base
     if bits is None:
-        spans = offsets.max(axis=0) + 1
+        spans = bounding_box(offsets)[1] + 1
         if int(spans[0]) * int(spans[1]) * int(spans[2]) >= 2**63:
             raise InvalidPointCloudError("point cloud spans too many voxels to give each one an int64 key")
     else:

@@ -35,8 +35,8 @@ from mapsqueeze.io.pointcloud import (
     validate_points,
 )
 
-DEFAULT_CHUNK_POINTS = 1 << 21
-"""Points per chunk of `iter_points` (48 MB of float64 x, y, z)."""
+DEFAULT_CHUNK_POINTS = 1 << 20
+"""Points per chunk of `iter_points` (24 MB of float64 x, y, z)."""
 
 ANY_FIELDS = None
 """`Format.fields` of a format that holds attributes of any name."""
