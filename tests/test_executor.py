@@ -66,6 +66,22 @@ def test_file_to_file_with_workers_gives_the_serial_files(map_points, model_dir,
     assert np.array_equal(read_points(tmp_path / "two.npy"), serial[1])
 
 
+def test_worker_pools_import_no_torch(map_points, model_dir, serial, tmp_path):
+    """A compress and a decompress with 2 workers: neither the calling process nor the modules the pool's server
+    imports for the workers (`PRELOAD`) load torch, and the bytes are the serial run's."""
+    source, msq, decoded = tmp_path / "map.ply", tmp_path / "map.msq", tmp_path / "decoded.npy"
+    write_points(source, map_points)
+    probe = (f"import sys, mapsqueeze; from mapsqueeze.codec.executor import PRELOAD; "
+             f"mapsqueeze.compress_file({str(source)!r}, {str(msq)!r}, model={str(model_dir)!r}, workers=2); "
+             f"mapsqueeze.decompress_file({str(msq)!r}, {str(decoded)!r}, model={str(model_dir)!r}, workers=2); "
+             f"coordinator = 'torch' in sys.modules; [__import__(name) for name in PRELOAD]; "
+             f"print(coordinator, 'torch' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["False", "False"]
+    assert msq.read_bytes() == serial[0]
+    assert np.array_equal(read_points(decoded), serial[1])
+
+
 @pytest.mark.slow
 def test_dask_cluster_gives_the_serial_bytes_and_points(map_points, model, serial):
     distributed = pytest.importorskip("distributed")
