@@ -15,7 +15,6 @@ from mapsqueeze.codec.attributes import (
     DEFAULT_VOXEL_M,
     AttributeSchema,
     build_schema,
-    encode_tile_attributes,
     parse_selection,
 )
 from mapsqueeze.codec.container import (
@@ -31,11 +30,12 @@ from mapsqueeze.codec.container import (
     serialise_container,
 )
 from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
-from mapsqueeze.codec.executor import open_executor
+from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
 from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, decode_octree_tile, encode_octree_tile, own_leaf_distances
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
+from mapsqueeze.codec.tileattributes import AttributeCoder
 from mapsqueeze.codec.tilepoints import network_points, octree_points
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
@@ -54,10 +54,6 @@ beyond it raw coding (>= 13 bits a point) cannot beat even f32 embeddings (192 b
 
 MAX_REFINE_STEPS = 10_000
 """Encode-time refinement steps accepted at most per tile (`CompressionModel.refine`; a guard against typos)."""
-
-ProgressCallback = Callable[[int, int], None]
-"""Called with (tiles done, tiles in total) after each tile."""
-
 
 @dataclass(frozen=True)
 class AttributeOptions:
@@ -101,7 +97,6 @@ class _EncodedTile:
     candidates: list[Candidate]  # classical ones at first; the network's is added once coded
     network_d_e: float | None = None  # metres: D_e of the network's output for the (unquantised) embedding
     choice: Candidate | None = None
-    attributes: bytes = b""  # attribute stream (codec.attributes), when the map codes attributes
 
     def record(self) -> TileRecord:
         return TileRecord(self.index, self.n_points, self.bounds_lo, self.bounds_hi, self.choice.coding,
@@ -282,20 +277,21 @@ def _compress_tiles(
             if progress:
                 progress(offset + done, len(models) * n_tiles)
 
-        encoded = _encode_tiles(tile_source(), n_tiles, origin, model, refine_steps, target, schema, workers,
+        encoded = _encode_tiles(tile_source(), n_tiles, origin, model, refine_steps, target, workers,
                                 dask_scheduler, tile_progress)
+        streams = AttributeCoder(tile_source, model, schema, workers, dask_scheduler)
         latent = _code_network_candidates(encoded, model, precision, position_step_m, feature_step_std)
         weights = [tile.n_points for tile in encoded]
         if target.bpp is None:
             choices = [choose_for_error(tile.candidates, target.max_error_m) if target.max_error_m is not None
                        else choose(tile.candidates, _network_bytes(tile)) for tile in encoded]
-            data = _assemble(encoded, choices, model, latent, origin, n_points, schema)
+            data = _assemble(encoded, choices, model, latent, origin, n_points, streams)
         else:  # the payload budget is what the file may hold less the header and table of the last attempt
             target_bytes = target.bpp * n_points / 8
             budget = target_bytes
             for _ in range(_RATE_ATTEMPTS):
                 choices = choose_for_rate([tile.candidates for tile in encoded], weights, budget)
-                data = _assemble(encoded, choices, model, latent, origin, n_points, schema)
+                data = _assemble(encoded, choices, model, latent, origin, n_points, streams)
                 if len(data) <= target_bytes:
                     break
                 budget -= len(data) - target_bytes
@@ -312,8 +308,9 @@ _RATE_ATTEMPTS = 4
 
 
 def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, latent: LatentCodec,
-              origin: np.ndarray, n_points: int, schema: AttributeSchema | None) -> bytes:
-    """The container of the chosen codings (the latent codec refitted over the tiles that kept the network)."""
+              origin: np.ndarray, n_points: int, attributes: AttributeCoder) -> bytes:
+    """The container of the chosen codings (the latent codec refitted over the tiles that kept the network), with
+    the attribute section `attributes` codes on their decoded geometry."""
     for tile, choice in zip(encoded, choices):
         tile.choice = choice
     latent = _recode_chosen(encoded, latent)
@@ -332,8 +329,12 @@ def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, late
         latent=latent,
         default_count=DefaultCount.native,
     )
-    section = None if schema is None else AttributeSection(schema, [tile.attributes for tile in encoded if schema.specs])
-    return serialise_container(header, [tile.record() for tile in encoded], section)
+    records = [tile.record() for tile in encoded]
+    geometry = serialise_container(header, records)
+    if attributes.schema is None:
+        return geometry
+    section = AttributeSection(attributes.schema, attributes.streams(geometry, [tile.choice for tile in encoded]))
+    return serialise_container(header, records, section)
 
 
 @dataclass(frozen=True)
@@ -344,20 +345,15 @@ class _TileJob:
     origin: np.ndarray  # float64 world corner of the tile grid (metres)
     tile_size: np.ndarray
     refine_steps: int
-    schema: AttributeSchema | None
     target: RateTarget
 
 
 def _encode_job(job: _TileJob, item: tuple[tuple[int, int, int], np.ndarray, dict]) -> _EncodedTile:
-    """One tile's job: (tile index, its float64 world points, its attributes) -> its embedding, classical candidates
-    and coded attributes."""
-    index, points, attributes = item
+    """One tile's job: (tile index, its float64 world points, its attributes) -> its embedding and classical
+    candidates (attributes are coded once the tile's coding is chosen, `codec.tileattributes`)."""
+    index, points, _ = item
     tile_origin = job.origin + np.asarray(index) * job.tile_size
-    tile = _encode_tile(index, tile_origin, points, job.tile_size, job.model, job.refine_steps, job.target)
-    if job.schema is not None and job.schema.specs:
-        local = to_local(points, frame_origin(tile_origin, tile.bounds_lo, job.tile_size), job.tile_size)
-        tile.attributes = encode_tile_attributes(local, attributes, job.schema, job.tile_size)
-    return tile
+    return _encode_tile(index, tile_origin, points, job.tile_size, job.model, job.refine_steps, job.target)
 
 
 def _network_bytes(tile: _EncodedTile) -> int | None:
@@ -366,12 +362,12 @@ def _network_bytes(tile: _EncodedTile) -> int | None:
 
 
 def _encode_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,
-                  origin: np.ndarray, model, refine_steps: int, target: RateTarget, schema: AttributeSchema | None,
-                  workers: int | None, dask_scheduler: str | None, progress: ProgressCallback) -> list[_EncodedTile]:
+                  origin: np.ndarray, model, refine_steps: int, target: RateTarget, workers: int | None,
+                  dask_scheduler: str | None, progress: ProgressCallback) -> list[_EncodedTile]:
     """Every tile's candidates with one model, encoded by `workers` processes or a Dask cluster (`codec.executor`)."""
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     encoded = []
-    job = _TileJob(model, origin, tile_size, refine_steps, schema, target)
+    job = _TileJob(model, origin, tile_size, refine_steps, target)
     executor = open_executor(workers, dask_scheduler, job, n_tiles)
     try:
         for done, tile in enumerate(executor.map(_encode_job, job, tile_points), start=1):

@@ -27,9 +27,13 @@ from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
-VERSION = 2
-"""Version written; version 1 files (no default-count field, network and raw tiles only) still read."""
-READABLE_VERSIONS = (1, 2)
+VERSION = 3
+"""Version written (3: attribute streams code values on the decoded geometry, `codec.attributes`); version 2 files
+(attribute streams with their own voxels, `codec.attrlegacy`) and version 1 files (also no default-count field,
+network and raw tiles only) still read."""
+READABLE_VERSIONS = (1, 2, 3)
+ATTRIBUTES_ON_DECODED_GEOMETRY = 3
+"""First version whose attribute streams are coded on the tiles' decoded geometry."""
 _PREAMBLE = struct.Struct("<4sHHI")  # magic, version, reserved flags, header body length
 _CRC = struct.Struct("<I")
 _TABLE_LENGTH = struct.Struct("<I")

@@ -9,8 +9,9 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 
 from mapsqueeze.codec.attributes import decode_tile_attributes
-from mapsqueeze.codec.compress import ProgressCallback
+from mapsqueeze.codec.attrlegacy import decode_legacy_tile_attributes
 from mapsqueeze.codec.container import (
+    ATTRIBUTES_ON_DECODED_GEOMETRY,
     DEFAULT_MAX_TILE_POINTS,
     MAX_POINTS_PER_TILE,
     ContainerReader,
@@ -21,7 +22,7 @@ from mapsqueeze.codec.container import (
     frame_origin,
     open_container,
 )
-from mapsqueeze.codec.executor import open_executor
+from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.rawtile import decode_raw_tile
 from mapsqueeze.codec.tilepoints import network_points, octree_points
@@ -217,18 +218,17 @@ def iter_decoded_clouds(
         jobs = [(position, count) for position, count in zip(selected, counts) if count != 0]
         payloads = ((reader.entries[position], reader.payload(position), count,
                      f"{reader.name}: {reader.entries[position].label(position)}") for position, count in jobs)
-        context = (header, model, max_tile_points)
+        support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
+        context = (header, model, max_tile_points, support)
         executor = open_executor(workers, dask_scheduler, context, len(jobs))
         try:
             decoded = executor.map(_decode_job, context, payloads)
             for done, (position, count) in enumerate(zip(selected, counts), start=1):
                 if count != 0:
-                    local = next(decoded)
+                    local, native = next(decoded)
                     values = {}
                     if attributes and reader.attribute_entries:
-                        values = decode_tile_attributes(reader.attribute_stream(position), local, schema,
-                                                        np.asarray(header.tile_size),
-                                                        f"{reader.name}: {reader.entries[position].label(position)}")
+                        values = _tile_attributes(reader, position, local, native, count is None)
                     world = tile_frame(header, reader.entries[position]) + local
                     if box is not None:
                         inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
@@ -241,12 +241,33 @@ def iter_decoded_clouds(
             executor.close(abort=sys.exc_info()[0] is not None)
 
 
-def _decode_job(context: tuple[Header, object, int], item: tuple[TileEntry, bytes, int | None, str]) -> np.ndarray:
-    """One tile's job: (table entry, payload bytes, point count, label) -> float32 points (`decode_payload`);
-    context: the container's header, the model and the points-per-tile limit."""
-    header, model, max_tile_points = context
+def _tile_attributes(reader: ContainerReader, position: int, local: np.ndarray, native: np.ndarray | None,
+                     at_native: bool) -> dict[str, np.ndarray]:
+    """The attributes of a tile's decoded points `local` from its attribute stream; `native`: the tile's default
+    decoded points (the field's support; versions 1-2 code their own voxels), of which `local` is one when
+    `at_native`."""
+    label = f"{reader.name}: {reader.entries[position].label(position)}"
+    stream, schema = reader.attribute_stream(position), reader.attribute_schema
+    tile_size = np.asarray(reader.header.tile_size)
+    if native is None:
+        return decode_legacy_tile_attributes(stream, local, schema, tile_size, label)
+    return decode_tile_attributes(stream, native, None if at_native else local, schema, tile_size, label)
+
+
+def _decode_job(context: tuple[Header, object, int, bool], item: tuple[TileEntry, bytes, int | None, str]
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+    """One tile's job: (table entry, payload bytes, point count, label) -> float32 points (`decode_payload`) and,
+    when the context asks for the attribute support, the tile's default decoded points (the same array when the
+    count is the native one; else decoded again at the native count, up to MAX_POINTS_PER_TILE); context: the
+    container's header, the model, the points-per-tile limit and whether the support is wanted."""
+    header, model, max_tile_points, support = context
     entry, payload, count, label = item
-    return decode_payload(header, entry, payload, model, count, label, max_tile_points)
+    local = decode_payload(header, entry, payload, model, count, label, max_tile_points)
+    if not support:
+        return local, None
+    if count is None:
+        return local, local
+    return local, decode_payload(header, entry, payload, model, None, label, MAX_POINTS_PER_TILE)
 
 
 def _intersects(a: np.ndarray, b: np.ndarray) -> bool:

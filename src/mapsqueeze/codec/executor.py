@@ -20,6 +20,9 @@ from mapsqueeze.geometry.threads import set_threads
 
 TileFunction = Callable[[Any, Any], Any]
 
+ProgressCallback = Callable[[int, int], None]
+"""Called with (tiles done, tiles in total) after each tile."""
+
 IN_FLIGHT_PER_WORKER = 2
 """Jobs submitted per worker ahead of the oldest unfinished one (keeps workers busy while results are collected)."""
 
