@@ -160,3 +160,17 @@ def test_container_version_3_and_its_attributes_follow_the_decoded_geometry():
     assert (sparse.attributes["cls"] == default.attributes["cls"][nearest]).mean() > 0.97
     assert np.abs(sparse.attributes["intensity"].astype(float) -
                   default.attributes["intensity"][nearest].astype(float)).mean() < 3
+
+
+def test_rate_control_counts_the_attribute_streams_of_the_chosen_codings():
+    """Under --bpp each attempt's attribute streams follow its tile choices (cached per tile and coding)."""
+    from test_attributes import street
+
+    points, intensity, classification, _ = street(3000, 1000)
+    attributes = {"intensity": intensity, "cls": classification}
+    free = mapsqueeze.compress(points, attributes=attributes)
+    budget = 8 * len(free) / len(points) * 0.6
+    data = mapsqueeze.compress(points, attributes=attributes, bpp=budget)
+    assert 8 * len(data) / len(points) <= budget < 8 * len(free) / len(points)
+    cloud = mapsqueeze.decompress_cloud(data)
+    assert len(cloud.attributes["cls"]) == len(cloud.attributes["intensity"]) == len(cloud.points) > 0
