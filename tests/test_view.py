@@ -16,6 +16,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import mapsqueeze
+from mapsqueeze.codec.compress import AttributeOptions
 from mapsqueeze.codec.container import open_container
 from mapsqueeze.codec.decompress import decode_embedding
 from mapsqueeze.errors import ContainerError
@@ -57,10 +58,12 @@ def smooth_intensity(points: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def intensity_files(tmp_path_factory, map_points, model_dir):
-    """map.ply (points with smooth_intensity) and map.msq, its compression with the intensity coded."""
+    """map.ply (points with smooth_intensity) and map.msq, its compression with the intensity coded finely (0.25 m
+    voxels, step 1/256 of the range: the page must show the decoded values, which then follow the original's)."""
     folder = tmp_path_factory.mktemp("intensity")
     write_points(folder / "map.ply", map_points, attributes={"intensity": smooth_intensity(map_points)})
-    mapsqueeze.compress_file(folder / "map.ply", folder / "map.msq", model=model_dir)
+    mapsqueeze.compress_file(folder / "map.ply", folder / "map.msq", model=model_dir,
+                             attribute_options=AttributeOptions(voxel_m=0.25, relative_step=1 / 256))
     return folder / "map.ply", folder / "map.msq"
 
 
