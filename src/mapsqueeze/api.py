@@ -63,6 +63,11 @@ def _model(model):
     return model
 
 
+def _target(max_error: float | None, bpp: float | None, fallback: bool, post_filter: bool | None) -> RateTarget:
+    """The RateTarget of compress's arguments (post_filter None: on unless in the paper's mode, fallback=False)."""
+    return RateTarget(max_error, bpp, fallback, fallback if post_filter is None else post_filter)
+
+
 def _models(model, target: RateTarget):
     """The model to compress with, or under a rate target without a model, the list of shipped ones to pick from."""
     if model is None:
@@ -72,8 +77,8 @@ def _models(model, target: RateTarget):
 
 def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAULT_PRECISION, *,
              refine_steps: int = 0, max_error: float | None = None, bpp: float | None = None,
-             fallback: bool = True, progress: ProgressCallback | None = None, keep_zero_points: bool = False,
-             attributes: dict[str, np.ndarray] | None = None, metadata: dict | None = None,
+             fallback: bool = True, post_filter: bool | None = None, progress: ProgressCallback | None = None,
+             keep_zero_points: bool = False, attributes: dict[str, np.ndarray] | None = None, metadata: dict | None = None,
              attribute_options: AttributeOptions = AttributeOptions(),
              workers: int | None = None, dask_scheduler: str | None = None) -> bytes:
     """(N, 3) float64 map points (metres, e.g. UTM) -> .msq bytes.
@@ -83,7 +88,9 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
     decision picks (`codec.modes`): by default the lowest D_e at no more bytes than the network's payload;
     max_error (metres): the smallest coding with D_e <= max_error; bpp: the lowest D_e within that many bits per
     point. fallback=False offers tiles only the network (and raw coding when sparse), not the octree: the
-    paper's mode. precision: f32, f16 or q.
+    paper's mode. post_filter: choose a decode post-filter per network tile (`codec.postfilter`: higher IoU at
+    the same size, one byte per tile); None: on, except in the paper's mode (fallback=False). precision: f32,
+    f16 or q.
     refine_steps: encode-time refinement of each tile's embedding (0: the paper's encoder; 20: ~10 % lower D_e at
     the same size, encoding 10-45x slower on CPU; decoding unchanged). progress(done, total) is called after each tile.
     Points at exactly (0, 0, 0), which sensors write for "no return", are left out (with their attributes) unless
@@ -100,7 +107,7 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
         if n_zero:
             nonzero = points.any(axis=1)
             points, attributes = kept, {name: values[nonzero] for name, values in attributes.items()}
-    target = RateTarget(max_error, bpp, fallback)
+    target = _target(max_error, bpp, fallback, post_filter)
     return compress_map(points, _models(model, target), precision, progress=progress, refine_steps=refine_steps,
                         attributes=attributes, metadata=metadata, attribute_options=attribute_options,
                         workers=workers, dask_scheduler=dask_scheduler, target=target)
@@ -258,7 +265,8 @@ def tiles(source: bytes | str | os.PathLike) -> list[TileInfo]:
 def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=None,
                   precision: str | Precision = DEFAULT_PRECISION, *, refine_steps: int = 0,
                   max_error: float | None = None, bpp: float | None = None, fallback: bool = True,
-                  progress: ProgressCallback | None = None, keep_zero_points: bool = False,
+                  post_filter: bool | None = None, progress: ProgressCallback | None = None,
+                  keep_zero_points: bool = False,
                   format: str | None = None,
                   attribute_options: AttributeOptions = AttributeOptions(), workers: int | None = None,
                   dask_scheduler: str | None = None) -> ContainerInfo:
@@ -274,7 +282,7 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     format_name(input_path, format)
     check_output_path(output_path)
-    target = RateTarget(max_error, bpp, fallback)
+    target = _target(max_error, bpp, fallback, post_filter)
     model = _models(model, target)
     dropped = [0]
 

@@ -35,8 +35,9 @@ from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
 from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, decode_octree_tile, encode_octree_tile, own_leaf_distances
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
+from mapsqueeze.codec.postfilter import OFF, choose_post_filter
 from mapsqueeze.codec.tileattributes import AttributeCoder
-from mapsqueeze.codec.tilepoints import network_points, octree_points
+from mapsqueeze.codec.tilepoints import keep_inside, network_points, octree_points
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
@@ -96,11 +97,13 @@ class _EncodedTile:
     features: np.ndarray | None
     candidates: list[Candidate]  # classical ones at first; the network's is added once coded
     network_d_e: float | None = None  # metres: D_e of the network's output for the (unquantised) embedding
+    post_filter: int = OFF  # the network output's decode post-filter (`codec.postfilter`)
     choice: Candidate | None = None
 
     def record(self) -> TileRecord:
+        network = self.choice.coding is TileCoding.network
         return TileRecord(self.index, self.n_points, self.bounds_lo, self.bounds_hi, self.choice.coding,
-                          self.choice.payload)
+                          self.choice.payload, self.post_filter if network else OFF)
 
 
 def compress_map(
@@ -382,7 +385,8 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
                  tile_size: np.ndarray, model, refine_steps: int, target: RateTarget = RateTarget()) -> _EncodedTile:
     """The tile's embedding and its classical candidates, each with its payload and D_e: raw when the tile is sparse
     enough for raw coding to compete or a rate target is given, the octree at each leaf of OCTREE_LEAVES_M unless
-    the target forbids the fallback."""
+    the target forbids the fallback; the network's decode post-filter setting (chosen on the decode of the
+    unquantised embedding) and that filtered decode's D_e, unless the target forbids the post-filter."""
     _check_tile_size(index, len(tile_points))
     lo, hi = quantise_bounds(tile_points - tile_origin, tile_size)
     local = to_local(tile_points, frame_origin(tile_origin, lo, tile_size), tile_size)
@@ -404,9 +408,15 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
         candidates.append(Candidate(TileCoding.octree, payload, len(payload), d_e, f"octree {leaf:g} m"))
     if refine_steps:
         embedding = model.refine(local, embedding, refine_steps)
-    network_d_e = d_euclidean(local, network_points(model, embedding.points, embedding.features, extent, None), tree)
+    decoded = network_points(model, embedding.points, embedding.features, extent, None)
+    post_filter = OFF
+    if target.post_filter:
+        post_filter, network_d_e = choose_post_filter(local, decoded, frame_origin(tile_origin, lo, tile_size),
+                                                      lambda cloud: keep_inside(cloud, extent))
+    else:
+        network_d_e = d_euclidean(local, decoded, tree)
     return _EncodedTile(index, len(local), lo, hi, extent, embedding.points, embedding.features, candidates,
-                        network_d_e)
+                        network_d_e, post_filter)
 
 
 def _code_network_candidates(encoded: list[_EncodedTile], model, precision: Precision, position_step_m: float | None,

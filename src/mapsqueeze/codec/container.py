@@ -21,19 +21,24 @@ from mapsqueeze.codec.attributes import AttributeSchema
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
+from mapsqueeze.codec.postfilter import OFF, check_setting
 from mapsqueeze.codec.rawtile import axis_bits
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
-VERSION = 3
-"""Version written (3: attribute streams code values on the decoded geometry, `codec.attributes`); version 2 files
-(attribute streams with their own voxels, `codec.attrlegacy`) and version 1 files (also no default-count field,
-network and raw tiles only) still read."""
-READABLE_VERSIONS = (1, 2, 3)
+VERSION = 4
+"""Newest version written (4: a decode post-filter byte per tile, `codec.postfilter`; written only when a tile has
+one, else version 3, the same bytes as before the post-filter existed); version 3 files (attribute streams coded
+on the decoded geometry, `codec.attributes`), version 2 files (attribute streams with their own voxels,
+`codec.attrlegacy`) and version 1 files (also no default-count field, network and raw tiles only) still read."""
+READABLE_VERSIONS = (1, 2, 3, 4)
 ATTRIBUTES_ON_DECODED_GEOMETRY = 3
 """First version whose attribute streams are coded on the tiles' decoded geometry."""
+POST_FILTER_VERSION = 4
+"""First version whose tile table entries carry a post-filter byte."""
+_VERSION_WITHOUT_POST_FILTER = 3
 _PREAMBLE = struct.Struct("<4sHHI")  # magic, version, reserved flags, header body length
 _CRC = struct.Struct("<I")
 _TABLE_LENGTH = struct.Struct("<I")
@@ -157,6 +162,7 @@ class TileEntry:
     offset: int  # byte offset of the payload in the file (stored relative to the first payload)
     length: int  # payload bytes
     crc32: int
+    post_filter: int = OFF  # decode post-filter setting of a network tile (`codec.postfilter`; version 4)
 
     def label(self, position: int) -> str:
         return f"tile {position} (index {self.index[0]},{self.index[1]},{self.index[2]})"
@@ -204,6 +210,7 @@ class TileRecord:
     bounds_hi: tuple[int, int, int]
     coding: TileCoding
     payload: bytes
+    post_filter: int = OFF  # network tiles only
 
 
 @dataclass(frozen=True)
@@ -228,7 +235,8 @@ def serialise_container(header: Header, tiles: list[TileRecord], attributes: Att
     then the attribute section when `attributes` is given (without it the bytes are those of a geometry-only file)."""
     body = header.serialise()
     flags = 0 if attributes is None else ATTRIBUTES_FLAG
-    head = _PREAMBLE.pack(MAGIC, VERSION, flags, len(body)) + body
+    version = VERSION if any(tile.post_filter != OFF for tile in tiles) else _VERSION_WITHOUT_POST_FILTER
+    head = _PREAMBLE.pack(MAGIC, version, flags, len(body)) + body
     head += _CRC.pack(zlib.crc32(head))
     table = ByteWriter()
     offset = 0
@@ -237,6 +245,8 @@ def serialise_container(header: Header, tiles: list[TileRecord], attributes: Att
             table.svarint(value)
         table.varint(tile.n_points)
         table.pack("6HB", *tile.bounds_lo, *tile.bounds_hi, tile.coding)
+        if version >= POST_FILTER_VERSION:
+            table.pack("B", tile.post_filter)
         table.varint(offset)
         table.varint(len(tile.payload))
         table.pack("I", zlib.crc32(tile.payload))
@@ -345,12 +355,19 @@ class ContainerReader:
             n_points = reader.varint(limit=2**32)
             *bounds, coding = reader.unpack("6HB")
             lo, hi = tuple(bounds[:3]), tuple(bounds[3:])
+            post_filter = reader.unpack("B")[0] if self.version >= POST_FILTER_VERSION else OFF
             offset = payload_start + reader.varint(limit=2**63)
             length = reader.varint(limit=2**32)
             (crc,) = reader.unpack("I")
             label = TileEntry(index, n_points, lo, hi, TileCoding.network, offset, length, crc).label(position)
             if coding not in TileCoding.__members__.values() or (self.version < 2 and coding == TileCoding.octree):
                 raise self._error(f"{label}: unknown coding {coding}")
+            try:
+                check_setting(post_filter, label)
+            except ContainerError as exc:
+                raise self._error(str(exc)) from None
+            if post_filter != OFF and coding != TileCoding.network:
+                raise self._error(f"{label}: a post-filter on a tile without a network coding")
             if not 1 <= n_points <= MAX_POINTS_PER_TILE or any(a > b for a, b in zip(lo, hi)):
                 raise self._error(f"{label}: bad point count or bounds")
             tile_low = np.asarray(self.header.origin) + np.asarray(index, dtype=np.float64) * self.header.tile_size
@@ -362,7 +379,7 @@ class ContainerReader:
                 raise self._error(f"{label}: payload offset {offset} should be {expected_offset}")
             if offset + length > self.file_size:
                 raise self._error(f"{label}: payload extends past the end of the file (truncated?)")
-            entries.append(TileEntry(index, n_points, lo, hi, TileCoding(coding), offset, length, crc))
+            entries.append(TileEntry(index, n_points, lo, hi, TileCoding(coding), offset, length, crc, post_filter))
             expected_offset += length
             previous_index = index
         reader.expect_end()

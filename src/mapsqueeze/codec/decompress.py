@@ -24,6 +24,7 @@ from mapsqueeze.codec.container import (
 )
 from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.octreetile import decode_octree_tile
+from mapsqueeze.codec.postfilter import PostFilter
 from mapsqueeze.codec.rawtile import decode_raw_tile
 from mapsqueeze.codec.tilepoints import network_points, octree_points
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
@@ -134,8 +135,9 @@ def decode_embedding(reader: ContainerReader, position: int) -> tuple[np.ndarray
 def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, count: int | None, label: str,
                    max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> np.ndarray:
     """A tile's payload bytes decoded to `count` float32 points relative to `tile_frame`, all inside the tile's
-    bounds (count None: the coding's native count, e.g. the network's whole output inside the box, refused above
-    `max_tile_points`).
+    bounds (count None: the coding's native count, e.g. the network's whole output inside the box after the
+    tile's post-filter, refused above `max_tile_points`). A network tile's output goes through the post-filter
+    its table entry signals (`codec.postfilter`) before it is resampled to `count`.
 
     The network grows surfaces past the tile's bounds box; those points are dropped (the neighbouring tile codes
     that space) and the count is restored from the points inside (`tilepoints.keep_inside`), so tile faces show
@@ -151,12 +153,14 @@ def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, coun
                                   entry.frame_extent_m(tile_size), count)
         else:
             points, features = _embedding_from_payload(header, entry, payload, label)
-            native = None if count is not None else len(points) * int(np.prod(model.config.upsampling_factors))
+            native = None if count is not None else (len(points) * int(np.prod(model.config.upsampling_factors))
+                                                     * (1 + PostFilter.parse(entry.post_filter).spread_copies))
             if native is not None and native > max_tile_points:
                 raise DecodeLimitError(f"{label}: its native count of {native:,} points is more than the limit of "
                                        f"{max_tile_points:,} points per tile; allow more with --max-tile-points N "
                                        f"(API: max_tile_points=N, at most {MAX_POINTS_PER_TILE:,})")
-            local = network_points(model, points, features, entry.frame_extent_m(tile_size), count)
+            local = network_points(model, points, features, entry.frame_extent_m(tile_size), count,
+                                   entry.post_filter)
     except MapsqueezeError:
         raise
     except (ValueError, IndexError, OverflowError) as exc:

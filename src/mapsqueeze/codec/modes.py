@@ -24,12 +24,13 @@ from mapsqueeze.errors import MapsqueezeError
 
 @dataclass(frozen=True)
 class RateTarget:
-    """What the user asks for: a D_e budget in metres or a rate budget in bits per point (at most one), and whether
-    tiles may fall back to the classical octree."""
+    """What the user asks for: a D_e budget in metres or a rate budget in bits per point (at most one), whether
+    tiles may fall back to the classical octree, and whether network tiles get a decode post-filter."""
 
     max_error_m: float | None = None
     bpp: float | None = None
     fallback: bool = True  # offer the octree to every tile (False: the network, raw for sparse tiles)
+    post_filter: bool = True  # choose a decode post-filter per network tile (False: the paper's decode)
 
     def __post_init__(self) -> None:
         if self.max_error_m is not None and self.bpp is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mapsqueeze.codec.postfilter import OFF, apply_post_filter
 from mapsqueeze.geometry.resample import resample_to_count
 
 
@@ -19,10 +20,14 @@ def keep_inside(cloud: np.ndarray, extent_m: np.ndarray) -> np.ndarray:
 
 
 def network_points(model, points: np.ndarray, features: np.ndarray, extent_m: np.ndarray,
-                   count: int | None) -> np.ndarray:
+                   count: int | None, post_filter: int = OFF) -> np.ndarray:
     """The network's whole output for an embedding, cropped to the box (the neighbouring tile codes the space
-    beyond it, so no point is moved onto a face), then resampled to `count` (None: all of it)."""
-    return resample_to_count(keep_inside(model.decode(points, features), extent_m), count).astype(np.float32)
+    beyond it, so no point is moved onto a face), reworked by the tile's decode post-filter setting and cropped
+    again (`codec.postfilter`; OFF: the paper's decode), then resampled to `count` (None: all of it)."""
+    cloud = keep_inside(model.decode(points, features), extent_m)
+    if post_filter != OFF:
+        cloud = keep_inside(apply_post_filter(cloud, post_filter), extent_m)
+    return resample_to_count(cloud, count).astype(np.float32)
 
 
 def octree_points(centres: np.ndarray, extent_m: np.ndarray, count: int | None) -> np.ndarray:
