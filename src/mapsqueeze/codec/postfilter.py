@@ -66,7 +66,7 @@ CANDIDATES = (
 the real KITTI and Ouster submaps with e0..e3, those that were the best for some model under the rule of
 `choose_post_filter`."""
 
-MAX_D_E_INCREASE = 0.03
+MAX_D_E_INCREASE = 0.05
 """A setting is chosen only if the tile's D_e stays within this fraction above the unfiltered decode's."""
 
 
