@@ -19,11 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.surface import disk_samples, keep_supported, local_planes, project_to_planes
-from mapsqueeze.metrics import iou
+from mapsqueeze.metrics import d_euclidean, iou, nearest_tree
 
 OFF = 0
 """The setting that leaves the decoded tile as the network gives it (the paper's decode; files before version 3)."""
@@ -118,15 +117,6 @@ def apply_post_filter(cloud: np.ndarray, byte: int, planes: tuple[np.ndarray, np
     return points.astype(np.float32)
 
 
-def _d_euclidean(original: np.ndarray, original_tree: KDTree, cloud: np.ndarray) -> float:
-    """`metrics.d_euclidean(original, cloud)` (metres) with pykdtree's faster trees (the filtered clouds hold up
-    to 3 x the decoder's native count)."""
-    cloud = np.asarray(cloud, dtype=np.float64)
-    to_cloud, _ = KDTree(cloud).query(original, k=1)
-    to_original, _ = original_tree.query(cloud, k=1)
-    return float(np.mean(to_cloud) / 2 + np.mean(to_original) / 2)
-
-
 def choose_post_filter(original: np.ndarray, decoded: np.ndarray, frame_m: np.ndarray, crop) -> tuple[int, float]:
     """(setting byte, D_e in metres of the filtered decode) for one network tile: of CANDIDATES whose D_e is at most
     (1 + MAX_D_E_INCREASE) x the unfiltered decode's, the one with the highest IoU (on the metric's world-anchored
@@ -136,14 +126,14 @@ def choose_post_filter(original: np.ndarray, decoded: np.ndarray, frame_m: np.nd
     the world point `frame_m`; crop(cloud) -> the cloud's points the decoder keeps (inside the tile's box).
     """
     original = np.asarray(original, dtype=np.float64)
-    original_tree = KDTree(original)
+    original_tree = nearest_tree(original)
     world = original + frame_m
     planes = (local_planes(np.asarray(decoded, dtype=np.float64), PLANE_NEIGHBOURS, PLANE_ANCHOR_EVERY)
               if len(decoded) >= 3 else None)
     best = limit = None
     for byte in CANDIDATES:
         filtered = crop(apply_post_filter(decoded, byte, planes))
-        d_e = _d_euclidean(original, original_tree, filtered)
+        d_e = d_euclidean(original, filtered, original_tree)
         if limit is None:
             limit = d_e * (1 + MAX_D_E_INCREASE)
         elif d_e > limit:
