@@ -95,17 +95,17 @@ def test_the_default_file_signals_a_filter_that_the_decoder_applies(e0_tile, fil
     reader, stream = open_container(filtered)
     with stream:
         settings = [entry.post_filter for entry in reader.entries]
-    assert reader.version == 3 and any(s in CANDIDATES and s != OFF for s in settings)
+    assert reader.version == 4 and any(s in CANDIDATES and s != OFF for s in settings)
     assert len(filtered) == len(paper) + len(settings)  # one byte per tile, the payloads unchanged
     with_filter, without = (mapsqueeze.decompress(data, model=model, workers=1) for data in (filtered, paper))
     assert iou(points, with_filter) > iou(points, without)
 
 
 def test_paper_mode_is_unchanged(e0_tile, filtered_and_paper):
-    """--no-fallback and --post-filter off write the version 2 bytes of the paper's decode."""
+    """--no-fallback and --post-filter off write the version 3 bytes of the paper's decode."""
     points, model = e0_tile
     _, paper = filtered_and_paper
-    assert open_container(paper)[0].version == 2
+    assert open_container(paper)[0].version == 3
     assert mapsqueeze.compress(points, model=model, fallback=False, workers=1) == \
         mapsqueeze.compress(points, model=model, fallback=False, post_filter=False, workers=1)
     reader, stream = open_container(paper)
@@ -130,7 +130,7 @@ def test_the_per_tile_setting_round_trips_and_bad_ones_are_refused(e0_tile, filt
     settings = [CANDIDATES[(i + 1) % len(CANDIDATES)] for i in range(n_tiles)]
     rewritten = _rewritten(paper, settings)
     assert [entry.post_filter for entry in open_container(rewritten)[0].entries] == settings
-    assert _rewritten(filtered, [OFF] * n_tiles) == paper  # all settings off: version 2, the paper's bytes
+    assert _rewritten(filtered, [OFF] * n_tiles) == paper  # all settings off: version 3, the paper's bytes
     with pytest.raises(ContainerError, match="post-filter"):
         open_container(_rewritten(paper, [0x40] * n_tiles))
 
