@@ -174,3 +174,25 @@ def test_rate_control_counts_the_attribute_streams_of_the_chosen_codings():
     assert 8 * len(data) / len(points) <= budget < 8 * len(free) / len(points)
     cloud = mapsqueeze.decompress_cloud(data)
     assert len(cloud.attributes["cls"]) == len(cloud.attributes["intensity"]) == len(cloud.points) > 0
+
+
+def test_the_attribute_support_is_decoded_on_the_cpu_whatever_the_model_device():
+    """A model on another device gives the support of the CPU decoder (its last-bit rounding differs, which could
+    move points across voxels) without building its own network."""
+    from test_attributes import street
+
+    from mapsqueeze.codec.container import TileCoding
+    from mapsqueeze.codec.decompress import attribute_support, decode_payload
+    from mapsqueeze.model import load_model
+
+    points, intensity, _, _ = street(6000, 2000)
+    data = mapsqueeze.compress(points, attributes={"intensity": intensity}, fallback=False)
+    reader, stream = open_container(data)
+    with stream:
+        position = next(i for i, e in enumerate(reader.entries) if e.coding is TileCoding.network)
+        entry, payload = reader.entries[position], reader.payload(position)
+        cpu, other = load_model("e1"), load_model("e1", device="cuda")
+        expected = decode_payload(reader.header, entry, payload, cpu, None, "tile", 1 << 23)
+        support = attribute_support(reader.header, entry, payload, other, "tile")
+    assert other._network is None
+    assert support.shape == expected.shape and np.array_equal(support, expected)

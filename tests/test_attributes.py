@@ -189,3 +189,17 @@ def test_cli_compress_options_and_info(tmp_path):
     assert result.returncode == 0 and "cannot hold attribute(s) ring" in result.stderr
     bad = run("compress", str(tmp_path / "map.ply"), "-o", str(tmp_path / "x.msq"), "--attributes", "colour")
     assert bad.returncode == 2 and bad.stderr.startswith("error: no attribute colour")
+
+
+def test_cli_decompress_without_attributes_writes_the_same_geometry_only(tmp_path, run_cli):
+    points, intensity, _, _ = street(6000, 2000)
+    write_points(tmp_path / "map.ply", points - UTM, attributes={"intensity": intensity})
+    mapsqueeze.compress_file(tmp_path / "map.ply", tmp_path / "map.msq")
+    code, _, err = run_cli("decompress", str(tmp_path / "map.msq"), "-o", str(tmp_path / "full.ply"))
+    assert code == 0, err
+    code, _, err = run_cli("decompress", str(tmp_path / "map.msq"), "-o", str(tmp_path / "bare.ply"),
+                           "--no-attributes")
+    assert code == 0, err
+    full, bare = read_point_cloud(tmp_path / "full.ply"), read_point_cloud(tmp_path / "bare.ply")
+    assert "intensity" in full.attributes and "intensity" not in bare.attributes
+    assert np.array_equal(full.points, bare.points)

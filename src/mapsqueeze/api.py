@@ -314,11 +314,12 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                     bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
                     progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None,
                     max_tile_points: int = DEFAULT_MAX_TILE_POINTS, format: str | None = None,
-                    workers: int | None = None, dask_scheduler: str | None = None) -> int:
+                    workers: int | None = None, dask_scheduler: str | None = None, attributes: bool = True) -> int:
     """Decode a .msq file (seeking to the tiles needed) and write the points, their attributes and the file's
     metadata atomically; returns the count.
 
     format: the output's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension).
+    attributes=False writes the geometry only (and the metadata), without decoding the attribute streams.
 
     Tiles are decoded one at a time into spill files (in spill_dir, default the system's temporary directory;
     24 bytes a point plus the attributes), which are then written out chunk by chunk: memory stays bounded by a
@@ -328,14 +329,15 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
     format_name(output_path, format)  # an unknown output format or an unwritable path fails before any decoding
     check_output_path(output_path)
     schema = info(input_path).attribute_schema
-    specs = schema.specs if schema else ()
+    specs = schema.specs if schema and attributes else ()
     with work_dir("mapsqueeze-decoded-", spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
         streams = [open(os.path.join(spill, f"attribute{column}"), "wb") for column in range(len(specs))]
         try:
             with open(spill_path, "wb") as stream:
                 for tile in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress,
-                                                max_tile_points, workers=workers, dask_scheduler=dask_scheduler):
+                                                max_tile_points, attributes=attributes, workers=workers,
+                                                dask_scheduler=dask_scheduler):
                     stream.write(np.ascontiguousarray(tile.points, dtype="<f8").tobytes())
                     for spec, column in zip(specs, streams):
                         column.write(np.ascontiguousarray(tile.attributes[spec.name], dtype=spec.dtype).tobytes())

@@ -128,16 +128,19 @@ def decompress_command(
                                         max=MAX_POINTS_PER_TILE,
                                         help="refuse to decode more points than this in one tile (a guard "
                                              "against crafted files)"),
+    no_attributes: bool = typer.Option(False, "--no-attributes",
+                                       help="write the geometry only, without decoding the attribute fields"),
     workers: int | None = _workers_option(),
     dask_scheduler: str | None = _dask_option(),
 ) -> None:
     """Decompress a .msq file to a point cloud."""
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
-    warn_dropped(api.info(msq).attributes, output, out_format)
+    if not no_attributes:
+        warn_dropped(api.info(msq).attributes, output, out_format)
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress, max_tile_points=max_tile_points, format=out_format,
-                                    workers=workers, dask_scheduler=dask_scheduler)
+                                    workers=workers, dask_scheduler=dask_scheduler, attributes=not no_attributes)
     make_console().print(f"wrote {count:,} points to {output}")
 
 

@@ -215,7 +215,8 @@ def decode_tile_attributes(stream: bytes, support: np.ndarray, points_local: np.
     reader = ByteReader(stream, what)
     n_voxels = reader.varint(limit=2**40)
     if n_voxels != len(codes):
-        raise reader.fail(f"attribute stream codes {n_voxels} voxels, the decoded tile occupies {len(codes)}")
+        raise reader.fail(f"attribute stream codes {n_voxels} voxels, the decoded tile occupies {len(codes)} "
+                          "(decompress --no-attributes decodes the geometry alone)")
     tables = []
     for spec in schema.specs:
         palette = None

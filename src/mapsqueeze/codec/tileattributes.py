@@ -8,8 +8,8 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from mapsqueeze.codec.attributes import AttributeSchema, encode_tile_attributes
-from mapsqueeze.codec.container import MAX_POINTS_PER_TILE, Header, open_container
-from mapsqueeze.codec.decompress import decode_payload, tile_frame
+from mapsqueeze.codec.container import Header, open_container
+from mapsqueeze.codec.decompress import attribute_support, tile_frame
 from mapsqueeze.codec.executor import open_executor
 from mapsqueeze.geometry.tiling import to_local
 
@@ -54,6 +54,6 @@ def _attribute_job(context: tuple[Header, object, AttributeSchema], item: tuple)
     header, model, schema = context
     entry, payload, label, points, attributes = item
     tile_size = np.asarray(header.tile_size)
-    support = decode_payload(header, entry, payload, model, None, label, MAX_POINTS_PER_TILE)
+    support = attribute_support(header, entry, payload, model, label)
     local = to_local(points, tile_frame(header, entry), tile_size)
     return encode_tile_attributes(support, local, attributes, schema, tile_size)

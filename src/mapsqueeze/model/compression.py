@@ -53,6 +53,13 @@ class CompressionModel:
             self._network = network_from_tensors(self.config, self.tensors).to(self.device).eval()
         return self._network
 
+    def on_cpu(self) -> CompressionModel:
+        """This model with the numpy forward on the CPU (itself when it runs there): the decoder that defines the
+        attribute field's support, so that a file written on any device has the same support everywhere."""
+        if self.device == "cpu":
+            return self
+        return CompressionModel(self.config, self.tensors, self.model_id, self.weights_sha256, "cpu")
+
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_network": None}
 
