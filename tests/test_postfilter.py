@@ -85,11 +85,11 @@ def e0_tile():
 @pytest.fixture(scope="module")
 def filtered_and_paper(e0_tile):
     points, model = e0_tile
-    return (mapsqueeze.compress(points, model=model, workers=1),
-            mapsqueeze.compress(points, model=model, post_filter=False, workers=1))
+    return (mapsqueeze.compress(points, model=model, post_filter=True, workers=1),
+            mapsqueeze.compress(points, model=model, workers=1))
 
 
-def test_the_default_file_signals_a_filter_that_the_decoder_applies(e0_tile, filtered_and_paper):
+def test_a_post_filtered_file_signals_a_filter_that_the_decoder_applies(e0_tile, filtered_and_paper):
     points, model = e0_tile
     filtered, paper = filtered_and_paper
     reader, stream = open_container(filtered)
@@ -102,12 +102,14 @@ def test_the_default_file_signals_a_filter_that_the_decoder_applies(e0_tile, fil
 
 
 def test_paper_mode_is_unchanged(e0_tile, filtered_and_paper):
-    """--no-fallback and --post-filter off write the version 3 bytes of the paper's decode."""
+    """The default (--post-filter off) writes the version 3 bytes of the paper's decode, with or without
+    --no-fallback."""
     points, model = e0_tile
     _, paper = filtered_and_paper
     assert open_container(paper)[0].version == 3
     assert mapsqueeze.compress(points, model=model, fallback=False, workers=1) == \
         mapsqueeze.compress(points, model=model, fallback=False, post_filter=False, workers=1)
+    assert mapsqueeze.compress(points, model=model, post_filter=False, workers=1) == paper
     reader, stream = open_container(paper)
     with stream:
         assert all(entry.post_filter == OFF for entry in reader.entries)

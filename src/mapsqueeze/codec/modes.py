@@ -30,7 +30,7 @@ class RateTarget:
     max_error_m: float | None = None
     bpp: float | None = None
     fallback: bool = True  # offer the octree to every tile (False: the network, raw for sparse tiles)
-    post_filter: bool = True  # choose a decode post-filter per network tile (False: the paper's decode)
+    post_filter: bool = False  # choose a decode post-filter per network tile (False: the paper's decode)
 
     def __post_init__(self) -> None:
         if self.max_error_m is not None and self.bpp is not None:
