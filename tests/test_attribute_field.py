@@ -116,7 +116,7 @@ def test_crafted_streams_give_a_clean_error():
     coded = schema(INTENSITY, LABEL)
     stream = encode_tile_attributes(support, support, values, coded, TILE)
     other = surface(4000, seed=5)[:3000]
-    with pytest.raises(ContainerError, match="decoded tile occupies"):
+    with pytest.raises(ContainerError, match="does not match the decoded tile"):
         decode_tile_attributes(stream, other, None, coded, TILE, "tile")  # a support that differs
     cases = [stream[:-4], stream + b"\0\0\0\0", stream[:5], stream[:-1]]
     rng = np.random.default_rng(3)
@@ -196,3 +196,25 @@ def test_the_attribute_support_is_decoded_on_the_cpu_whatever_the_model_device()
         support = attribute_support(reader.header, entry, payload, other, "tile")
     assert other._network is None
     assert support.shape == expected.shape and np.array_equal(support, expected)
+
+
+def test_a_support_rounded_differently_is_repaired_and_a_different_one_refused():
+    """A decoder whose rounding moves a voxel's only point across a face (count unchanged, codes not) gets the
+    encoder's values back; a point moved beyond the tolerance gives a clean error, never shifted values."""
+    rng = np.random.default_rng(5)
+    support = surface(6000) + [0, 0.1, 0]  # below z = 8 m; the wall off the voxel faces
+    lone = np.array([[20.0 - 2e-6, 10.25, 12.25]])  # alone in its voxel, just below its face x = 20
+    support = np.concatenate([support, lone]).astype(np.float64)
+    values = {"intensity": rng.uniform(0, 255, len(support)), "label": rng.integers(0, 4, len(support))}
+    coded = schema(INTENSITY, LABEL, voxel_m=0.5)
+    stream = encode_tile_attributes(support, support, values, coded, TILE)
+    expected = decode_tile_attributes(stream, support, None, coded, TILE, "tile")
+    rounded = support.copy()
+    rounded[-1, 0] = 20.0 + 2e-6  # across the face: the voxel x in [19.5, 20) empties, [20, 20.5) fills
+    assert len(support_voxels(rounded, TILE, 0.5)[0]) == len(support_voxels(support, TILE, 0.5)[0])
+    repaired = decode_tile_attributes(stream, rounded, None, coded, TILE, "tile")
+    for name in expected:
+        assert np.array_equal(repaired[name], expected[name])
+    rounded[-1, 0] = 20.01  # 1 cm across: not a rounding difference
+    with pytest.raises(ContainerError, match="does not match"):
+        decode_tile_attributes(stream, rounded, None, coded, TILE, "tile")

@@ -30,6 +30,7 @@ from mapsqueeze.codec.attrfield import (
     read_integer_tables,
     support_voxels,
 )
+from mapsqueeze.codec.attrsupport import checked_support, write_support_check
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter, SymbolReader, SymbolWriter
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.geometry.morton import morton_cells
@@ -185,7 +186,7 @@ def encode_tile_attributes(support: np.ndarray, points_local: np.ndarray, attrib
     members = np.concatenate([voxel.ravel(), voxel.ravel()[assigned]])  # the voxel of each value below
     lod = LevelsOfDetail(codes)
     writer, symbols = ByteWriter(), SymbolWriter()
-    writer.varint(len(codes))
+    write_support_check(writer, codes)
     for spec in schema.specs:
         own = np.asarray(attributes[spec.name], dtype=np.float64)
         values = np.concatenate([own[nearest], own])
@@ -211,12 +212,9 @@ def decode_tile_attributes(stream: bytes, support: np.ndarray, points_local: np.
                            schema: AttributeSchema, tile_size: np.ndarray, what: str) -> dict[str, np.ndarray]:
     """Attributes of decoded points (metres, tile frame; None: the support itself) from a tile's attribute stream
     and its default decoded points `support`: each point takes the values of its nearest support voxel."""
-    codes, voxel = support_voxels(support, tile_size, schema.voxel_m)
     reader = ByteReader(stream, what)
-    n_voxels = reader.varint(limit=2**40)
-    if n_voxels != len(codes):
-        raise reader.fail(f"attribute stream codes {n_voxels} voxels, the decoded tile occupies {len(codes)} "
-                          "(decompress --no-attributes decodes the geometry alone)")
+    codes, voxel = checked_support(reader, support, tile_size, schema.voxel_m)
+    n_voxels = len(codes)
     tables = []
     for spec in schema.specs:
         palette = None
