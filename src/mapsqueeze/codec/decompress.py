@@ -269,7 +269,7 @@ def _decode_job(context: tuple[Header, object, int, bool], item: tuple[TileEntry
     local = decode_payload(header, entry, payload, model, count, label, max_tile_points)
     if not support:
         return local, None
-    if count is None and (model is None or model.device == "cpu"):
+    if count is None and getattr(model, "device", "cpu") == "cpu":
         return local, local
     return local, attribute_support(header, entry, payload, model, label)
 
@@ -278,7 +278,7 @@ def attribute_support(header: Header, entry: TileEntry, payload: bytes, model, l
     """The tile's points that carry its attribute field (version >= 3): its default decoded points, decoded on the
     CPU whatever device `model` runs on (other devices round differently in the last bits, which can move a point
     into another voxel), up to MAX_POINTS_PER_TILE."""
-    cpu_model = None if model is None else model.on_cpu()
+    cpu_model = model.on_cpu() if hasattr(model, "on_cpu") else model  # a model only when the tile needs one
     return decode_payload(header, entry, payload, cpu_model, None, label, MAX_POINTS_PER_TILE)
 
 
