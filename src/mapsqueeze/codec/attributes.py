@@ -217,13 +217,8 @@ def decode_tile_attributes(stream: bytes, support: np.ndarray, points_local: np.
     n_voxels = len(codes)
     tables = []
     for spec in schema.specs:
-        palette = None
         if spec.kind == CATEGORICAL:
-            size = reader.varint(limit=min(MAX_PALETTE, n_voxels) + 1)
-            if size == 0:
-                raise reader.fail(f"empty palette of {spec.name!r}")
-            palette = np.cumsum([reader.svarint(limit=2**62)] + [reader.varint(limit=2**62) for _ in range(size - 1)])
-            tables.append((palette, read_category_tables(reader)))
+            tables.append((read_palette(reader, n_voxels, spec.name), read_category_tables(reader)))
         else:
             tables.append((None, read_integer_tables(reader)))
     symbols = SymbolReader(reader.raw(reader.remaining), what)
@@ -244,6 +239,15 @@ def decode_tile_attributes(stream: bytes, support: np.ndarray, points_local: np.
         centres = (morton_cells(codes) + 0.5) * schema.voxel_m
         nearest = KDTree(centres).query(np.asarray(points_local, dtype=np.float64), k=1)[1].astype(np.int64)
     return {spec.name: restore(spec, values[nearest]) for spec, values in zip(schema.specs, per_voxel)}
+
+
+def read_palette(reader: ByteReader, n_voxels: int, name: str) -> np.ndarray:
+    """A categorical attribute's sorted palette of a tile: `varint K` (1 <= K <= min(MAX_PALETTE, voxels)),
+    `svarint first`, K - 1 `varint` gaps."""
+    size = reader.varint(limit=min(MAX_PALETTE, n_voxels) + 1)
+    if size == 0:
+        raise reader.fail(f"empty palette of {name!r}")
+    return np.cumsum([reader.svarint(limit=2**62)] + [reader.varint(limit=2**62) for _ in range(size - 1)])
 
 
 def restore(spec: AttributeSpec, values: np.ndarray) -> np.ndarray:

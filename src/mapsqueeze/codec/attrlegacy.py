@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from mapsqueeze.codec.attributes import CATEGORICAL, MAX_PALETTE, AttributeSchema, restore
+from mapsqueeze.codec.attributes import CATEGORICAL, AttributeSchema, read_palette, restore
 from mapsqueeze.codec.entropy import ByteReader, Histogram, SymbolReader, decode_gaps
 from mapsqueeze.codec.rawtile import axis_bits
 from mapsqueeze.geometry.morton import morton_cells
@@ -24,12 +24,7 @@ def decode_legacy_tile_attributes(stream: bytes, points_local: np.ndarray, schem
     buckets = Histogram.read(reader)
     tables = []
     for spec in schema.specs:
-        palette = None
-        if spec.kind == CATEGORICAL:
-            size = reader.varint(limit=min(MAX_PALETTE, n_voxels) + 1)
-            if size == 0:
-                raise reader.fail(f"empty palette of {spec.name!r}")
-            palette = np.cumsum([reader.svarint(limit=2**62)] + [reader.varint(limit=2**62) for _ in range(size - 1)])
+        palette = read_palette(reader, n_voxels, spec.name) if spec.kind == CATEGORICAL else None
         tables.append((palette, Histogram.read(reader)))
     symbols = SymbolReader(reader.raw(reader.remaining), what)
     codes = np.cumsum(decode_gaps(symbols, n_voxels, buckets))
