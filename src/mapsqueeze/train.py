@@ -249,13 +249,16 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
     every process's weights digest (`weights_digest`, identical by construction and checked).
     """
     process, dev = _join_process_group(device)
-    try:
+    if process.world == 1:
         return _train(dataset, Path(out_dir), model_config, cfg, dev, resume, init, progress, process)
-    finally:
-        if process.world > 1:
-            import torch.distributed as dist
+    import torch.distributed as dist
 
-            dist.destroy_process_group()
+    try:
+        summary = _train(dataset, Path(out_dir), model_config, cfg, dev, resume, init, progress, process)
+        dist.barrier()  # a process that tears down its gloo pairs while another still uses them aborts (SIGABRT)
+        return summary
+    finally:
+        dist.destroy_process_group()
 
 
 def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainConfig, dev: torch.device,
