@@ -478,3 +478,35 @@ def test_write_point_chunks_refuses_lossy_float32_and_leaves_no_file(tmp_path):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(InvalidPointCloudError, match="empty"):
         write_point_chunks(tmp_path / "a.ply", lambda: iter([]))
+
+
+def _resident_bytes_of(path: Path) -> int:
+    """Resident bytes of this process's mappings of `path` (/proc/self/smaps)."""
+    resident, inside = 0, False
+    with open("/proc/self/smaps") as smaps:
+        for line in smaps:
+            fields = line.split()
+            if fields and "-" in fields[0] and len(fields) >= 5:  # a mapping's header line
+                inside = len(fields) >= 6 and fields[-1] == str(path)
+            elif inside and fields[0] == "Rss:":
+                resident += int(fields[1]) * 1024
+    return resident
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/smaps"), reason="needs Linux's /proc/self/smaps")
+@pytest.mark.parametrize("fmt", ["ply", "bin", "npy"])
+def test_chunked_reading_keeps_one_chunk_of_a_file_resident(tmp_path, fmt):
+    from mapsqueeze.io import iter_point_clouds
+
+    path = (tmp_path / f"big{EXTENSION[fmt]}").resolve()
+    points = local_cloud(400_000, seed=3)
+    write_points(path, points, format=fmt)
+    chunk_points = 10_000
+    file_bytes = path.stat().st_size
+    peak, total = 0, 0
+    for chunk in iter_point_clouds(path, chunk_points=chunk_points):
+        total += len(chunk)
+        peak = max(peak, _resident_bytes_of(path))
+    assert total == len(points)
+    # one chunk's rows (at most 8 float64 columns) and two pages, against ~5-10 MB for the whole file
+    assert peak <= chunk_points * 64 + 8192 < file_bytes / 4, (peak, file_bytes)

@@ -13,7 +13,8 @@ import plyfile
 
 from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
 from mapsqueeze.io.atomic import atomic_output
-from mapsqueeze.io.pointcloud import FLOAT32_MAX_ERROR_M, ChunkSource, CloudStats, PointCloud, validate_points
+from mapsqueeze.io.pointcloud import (FLOAT32_MAX_ERROR_M, ChunkSource, CloudStats, PointCloud, row_chunks,
+                                     validate_points)
 
 _PLY_INTEGER_TYPES = (np.int32, np.uint32)
 _PLY_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
@@ -41,10 +42,9 @@ def ply_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
     names = names if attributes else []
     if len(data) == 0:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
-    for start in range(0, len(data), chunk_points):
-        part = data[start:start + chunk_points]
+    for part in row_chunks(data, chunk_points):
         points = validate_points(np.column_stack([part["x"], part["y"], part["z"]]), name=str(path))
-        yield PointCloud(points, {name: np.array(part[name]) for name in names if name not in ("x", "y", "z")})
+        yield PointCloud(points, {name: part[name].copy() for name in names if name not in ("x", "y", "z")})
 
 
 def _ply_dtype(name: str, dtype: np.dtype, chunks: ChunkSource) -> np.dtype:

@@ -1,7 +1,7 @@
 """The in-memory point cloud and the checks every reader and writer applies to it."""
 
 import re
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +28,26 @@ class PointCloud:
 
     def __len__(self) -> int:
         return len(self.points)
+
+
+def row_chunks(table: np.ndarray, chunk_rows: int) -> Iterator[np.ndarray]:
+    """Consecutive ranges of at most chunk_rows rows of a table, in order, each an in-memory copy. A C-ordered
+    memory-mapped table (np.memmap of a whole file region) is mapped one range at a time and unmapped after the
+    copy: the pages of a map a process has read count as its resident memory, so reading a large file through one
+    map would grow with the file, and this way holds one chunk."""
+    mapped = isinstance(table, np.memmap) and table.filename is not None and table.flags.c_contiguous
+    row_shape = table.shape[1:]
+    row_bytes = table.dtype.itemsize * int(np.prod(row_shape, dtype=np.int64))
+    for start in range(0, len(table), chunk_rows):
+        stop = min(start + chunk_rows, len(table))
+        if not mapped:
+            yield np.array(table[start:stop])
+            continue
+        part = np.memmap(table.filename, dtype=table.dtype, mode="r", offset=table.offset + start * row_bytes,
+                         shape=(stop - start, *row_shape))
+        rows = np.array(part)
+        del part  # unmapped before the consumer asks for the next range
+        yield rows
 
 
 ChunkSource = Callable[[], Iterable[PointCloud]]

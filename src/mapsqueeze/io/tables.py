@@ -16,7 +16,7 @@ import numpy as np
 
 from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
 from mapsqueeze.io.atomic import atomic_output
-from mapsqueeze.io.pointcloud import ChunkSource, CloudStats, PointCloud, validate_points
+from mapsqueeze.io.pointcloud import ChunkSource, CloudStats, PointCloud, row_chunks, validate_points
 
 KITTI_FIELDS = ("reflectance",)
 SEMANTIC_KITTI_FIELDS = ("label", "instance")
@@ -65,11 +65,11 @@ def _table_chunks(path: Path, chunk_points: int, names: tuple[str, ...], label: 
     table = _float32_table(path, len(names), label)
     names = names if attributes else ()
     labels = _label_table(path, len(table)) if with_labels and attributes else None
-    for start in range(0, len(table), chunk_points):
-        part = table[start:start + chunk_points]
-        values = {name: np.array(part[:, 3 + column]) for column, name in enumerate(names)}
-        if labels is not None:
-            packed = np.array(labels[start:start + chunk_points])
+    label_parts = row_chunks(labels, chunk_points) if labels is not None else None
+    for part in row_chunks(table, chunk_points):
+        values = {name: part[:, 3 + column].copy() for column, name in enumerate(names)}
+        if label_parts is not None:
+            packed = next(label_parts)
             values["label"] = (packed & _LABEL_LIMIT).astype(np.uint16)
             values["instance"] = (packed >> 16).astype(np.uint16)
         yield PointCloud(validate_points(part[:, :3], name=str(path)), values)
@@ -138,11 +138,10 @@ def npy_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
     table = _npy_table(path, "r")
     if len(table) == 0:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
-    for start in range(0, len(table), chunk_points):
-        part = table[start:start + chunk_points]
-        columns = range(3, table.shape[1]) if attributes else ()
+    columns = range(3, table.shape[1]) if attributes else ()
+    for part in row_chunks(table, chunk_points):
         yield PointCloud(validate_points(part[:, :3], name=str(path)),
-                         {f"column{column}": np.array(part[:, column]) for column in columns})
+                         {f"column{column}": part[:, column].copy() for column in columns})
 
 
 def write_npy(path: Path, chunks: ChunkSource, stats: CloudStats) -> tuple[str, ...]:
