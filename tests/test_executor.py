@@ -68,16 +68,31 @@ def test_file_to_file_with_workers_gives_the_serial_files(map_points, model_dir,
 
 def test_worker_pools_import_no_torch(map_points, model_dir, serial, tmp_path):
     """A compress and a decompress with 2 workers: neither the calling process nor the modules the pool's server
-    imports for the workers (`PRELOAD`) load torch, and the bytes are the serial run's."""
+    imports for the workers (`WORKER_MODULES`) load torch, and the bytes are the serial run's."""
     source, msq, decoded = tmp_path / "map.ply", tmp_path / "map.msq", tmp_path / "decoded.npy"
     write_points(source, map_points)
-    probe = (f"import sys, mapsqueeze; from mapsqueeze.codec.executor import PRELOAD; "
+    probe = (f"import sys, mapsqueeze; from mapsqueeze.codec import compress, decompress; "
              f"mapsqueeze.compress_file({str(source)!r}, {str(msq)!r}, model={str(model_dir)!r}, workers=2); "
              f"mapsqueeze.decompress_file({str(msq)!r}, {str(decoded)!r}, model={str(model_dir)!r}, workers=2); "
-             f"coordinator = 'torch' in sys.modules; [__import__(name) for name in PRELOAD]; "
+             f"coordinator = 'torch' in sys.modules; "
+             f"[__import__(name) for name in compress.WORKER_MODULES + decompress.WORKER_MODULES]; "
              f"print(coordinator, 'torch' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert done.stdout.split() == ["False", "False"]
+
+
+def test_decoding_imports_no_numba(model_dir, serial, tmp_path):
+    """Decoding a file (the coordinator's and a decoding worker's modules, `decompress.WORKER_MODULES`) loads
+    neither numba nor torch: the decoder runs on numpy alone."""
+    msq = tmp_path / "map.msq"
+    msq.write_bytes(serial[0])
+    probe = (f"import sys, mapsqueeze; from mapsqueeze.codec import decompress; "
+             f"[__import__(name) for name in decompress.WORKER_MODULES]; "
+             f"mapsqueeze.decompress_file({str(msq)!r}, {str(tmp_path / 'decoded.ply')!r}, "
+             f"model={str(model_dir)!r}, workers=1); "
+             f"print(sorted({{'numba', 'torch', 'scipy'}} & set(sys.modules)))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
     assert msq.read_bytes() == serial[0]
     assert np.array_equal(read_points(decoded), serial[1])
 

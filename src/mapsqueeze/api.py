@@ -10,9 +10,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +34,6 @@ from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.codec.octreetile import octree_leaf_m
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import (
-    DEFAULT_CHUNK_POINTS,
     PointCloud,
     atomic_write_bytes,
     check_output_path,
@@ -48,6 +48,10 @@ from mapsqueeze.io import (
 
 DEFAULT_MODEL = "e1"
 DEFAULT_PRECISION = "q"
+
+SPILL_CHUNK_POINTS = 1 << 17
+"""Points per chunk that decompress_file reads back from its spill files and writes (3 MB of coordinates; the
+writer's checks make a few temporaries of that size)."""
 
 
 RATE_TARGET_MODELS = ("e0", "e1", "e2", "e3")
@@ -338,23 +342,32 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                 for tile in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress,
                                                 max_tile_points, attributes=attributes, workers=workers,
                                                 dask_scheduler=dask_scheduler):
-                    stream.write(np.ascontiguousarray(tile.points, dtype="<f8").tobytes())
+                    stream.write(np.ascontiguousarray(tile.points, dtype="<f8").data)
                     for spec, column in zip(specs, streams):
-                        column.write(np.ascontiguousarray(tile.attributes[spec.name], dtype=spec.dtype).tobytes())
+                        column.write(np.ascontiguousarray(tile.attributes[spec.name], dtype=spec.dtype).data)
         finally:
             for column in streams:
                 column.close()
         if os.path.getsize(spill_path) == 0:
             raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
-        points = np.memmap(spill_path, dtype="<f8", mode="r").reshape(-1, 3)
-        columns = {spec.name: np.memmap(os.path.join(spill, f"attribute{column}"), dtype=spec.dtype, mode="r")
-                   for column, spec in enumerate(specs)}
+        n_points = os.path.getsize(spill_path) // 24
+        attribute_paths = {spec.name: (os.path.join(spill, f"attribute{column}"), spec.dtype)
+                           for column, spec in enumerate(specs)}
         metadata = schema.metadata if schema else {}
-        try:
-            return write_point_chunks(output_path, lambda: (
-                PointCloud(points[start:start + DEFAULT_CHUNK_POINTS],
-                           {name: values[start:start + DEFAULT_CHUNK_POINTS] for name, values in columns.items()},
-                           metadata)
-                for start in range(0, len(points), DEFAULT_CHUNK_POINTS)), format)
-        finally:
-            del points, columns  # release the mappings before the directory is removed
+        return write_point_chunks(output_path, lambda: _spill_chunks(spill_path, attribute_paths, n_points, metadata),
+                                  format)
+
+
+def _spill_chunks(points_path: str, attribute_paths: dict[str, tuple[str, np.dtype]], n_points: int,
+                  metadata: dict) -> Iterator[PointCloud]:
+    """decompress_file's spill files (float64 points, one file per attribute) read back in clouds of
+    SPILL_CHUNK_POINTS points, by plain reads: a memory map would keep every page it had read resident."""
+    with contextlib.ExitStack() as files:
+        points_file = files.enter_context(open(points_path, "rb"))
+        columns = {name: (files.enter_context(open(path, "rb")), dtype)
+                   for name, (path, dtype) in attribute_paths.items()}
+        for start in range(0, n_points, SPILL_CHUNK_POINTS):
+            count = min(SPILL_CHUNK_POINTS, n_points - start)
+            yield PointCloud(np.fromfile(points_file, dtype="<f8", count=3 * count).reshape(count, 3),
+                             {name: np.fromfile(stream, dtype=dtype, count=count)
+                              for name, (stream, dtype) in columns.items()}, metadata)

@@ -45,6 +45,11 @@ from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.io import PointCloud, validate_attributes, work_dir
 from mapsqueeze.metrics import d_euclidean, nearest_tree
 
+WORKER_MODULES = ("mapsqueeze.codec.compress", "mapsqueeze.model.compression", "mapsqueeze.model.influences",
+                  "mapsqueeze.geometry.grid", "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells")
+"""What compressing workers import (`codec.executor.ProcessExecutor`'s preload): numba and its kernels, the numpy
+network, the octree coder."""
+
 RAW_POINTS_PER_EMBEDDING = 4
 """A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
 embedding point into hundreds of points of a dense surface, fits such sparse tiles poorly."""
@@ -371,7 +376,7 @@ def _encode_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, 
     tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
     encoded = []
     job = _TileJob(model, origin, tile_size, refine_steps, target)
-    executor = open_executor(workers, dask_scheduler, job, n_tiles)
+    executor = open_executor(workers, dask_scheduler, job, n_tiles, WORKER_MODULES)
     try:
         for done, tile in enumerate(executor.map(_encode_job, job, tile_points), start=1):
             encoded.append(tile)

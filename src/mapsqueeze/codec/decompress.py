@@ -31,6 +31,9 @@ from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointClou
 from mapsqueeze.geometry.resample import resample_to_count
 from mapsqueeze.io import PointCloud
 
+WORKER_MODULES = ("mapsqueeze.codec.decompress", "mapsqueeze.model.compression")
+"""What decoding workers import (`codec.executor.ProcessExecutor`'s preload): the numpy decoder, no numba."""
+
 MIN_DENSITY_EXTENT_M = 1.0
 """--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
 
@@ -224,7 +227,7 @@ def iter_decoded_clouds(
                      f"{reader.name}: {reader.entries[position].label(position)}") for position, count in jobs)
         support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
         context = (header, model, max_tile_points, support)
-        executor = open_executor(workers, dask_scheduler, context, len(jobs))
+        executor = open_executor(workers, dask_scheduler, context, len(jobs), WORKER_MODULES)
         try:
             decoded = executor.map(_decode_job, context, payloads)
             for done, (position, count) in enumerate(zip(selected, counts), start=1):

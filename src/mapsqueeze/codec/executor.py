@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import sys
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 from mapsqueeze.errors import MapsqueezeError
@@ -25,11 +25,6 @@ ProgressCallback = Callable[[int, int], None]
 
 IN_FLIGHT_PER_WORKER = 2
 """Jobs submitted per worker ahead of the oldest unfinished one (keeps workers busy while results are collected)."""
-
-PRELOAD = ("mapsqueeze.codec.compress", "mapsqueeze.codec.decompress", "mapsqueeze.model.compression",
-           "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells")
-"""Modules the jobs use, imported once by the server the workers are forked from (numba, the numpy network, the
-octree coder), not by every worker."""
 
 DASK_RETRIES = 3
 """A Dask job whose worker dies is run again on another worker this many times before the whole run fails."""
@@ -61,15 +56,17 @@ class SerialExecutor:
 
 class ProcessExecutor:
     """A pool of `workers` local processes (forkserver: safe whatever threads this process runs), each started
-    with the context and its threads limited to its share of the cores."""
+    with the context and its threads limited to its share of the cores. `preload`: the modules the jobs use,
+    imported once by the server the workers are forked from (set by the first pool of this process, which starts
+    the server), not by every worker."""
 
-    def __init__(self, workers: int, context: Any):
+    def __init__(self, workers: int, context: Any, preload: Sequence[str] = ()):
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
         self.workers = workers
         start = multiprocessing.get_context("forkserver")
-        start.set_forkserver_preload(list(PRELOAD))
+        start.set_forkserver_preload(list(preload))
         _start_quiet_forkserver(_threads_per_worker(workers))
         self._pool = ProcessPoolExecutor(workers, mp_context=start, initializer=_install_context,
                                          initargs=(context, _threads_per_worker(workers), _ParentStderr()))
@@ -123,14 +120,15 @@ class DaskExecutor:
 Executor = SerialExecutor | ProcessExecutor | DaskExecutor
 
 
-def open_executor(workers: int | None, dask_scheduler: str | None, context: Any, n_jobs: int) -> Executor:
+def open_executor(workers: int | None, dask_scheduler: str | None, context: Any, n_jobs: int,
+                  preload: Sequence[str] = ()) -> Executor:
     """The executor for a run of n_jobs tile jobs: Dask when a scheduler address is given, a process pool for
-    several workers and jobs, else this process. workers None: one per core."""
+    several workers and jobs (`preload`: see ProcessExecutor), else this process. workers None: one per core."""
     workers = default_workers() if workers is None else check_workers(workers)
     if dask_scheduler:
         return DaskExecutor(dask_scheduler, workers)
     if workers > 1 and n_jobs > 1:
-        return ProcessExecutor(min(workers, n_jobs), context)
+        return ProcessExecutor(min(workers, n_jobs), context, preload)
     return SerialExecutor()
 
 

@@ -27,11 +27,11 @@ def network_points(model, points: np.ndarray, features: np.ndarray, extent_m: np
     cloud = keep_inside(model.decode(points, features), extent_m)
     if post_filter != OFF:
         cloud = keep_inside(apply_post_filter(cloud, post_filter), extent_m)
-    return resample_to_count(cloud, count).astype(np.float32)
+    return resample_to_count(cloud, count).astype(np.float32, copy=False)
 
 
 def octree_points(centres: np.ndarray, extent_m: np.ndarray, count: int | None) -> np.ndarray:
     """Octree leaf centres moved into the box (a leaf holds input points, so its nearest box point is still in
     it), resampled to `count` (None: one point per leaf)."""
     upper = np.asarray(extent_m).astype(np.float32)
-    return resample_to_count(np.clip(centres, np.float32(0), upper), count).astype(np.float32)
+    return resample_to_count(np.clip(centres, np.float32(0), upper), count).astype(np.float32, copy=False)

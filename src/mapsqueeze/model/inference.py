@@ -15,17 +15,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapsqueeze.errors import ModelError
-from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
 from mapsqueeze.geometry.threads import one_blas_thread
 from mapsqueeze.model.config import ModelConfig
-from mapsqueeze.model.kernels import bias_leaky_relu, cpu_influences, kernel_sigma, query_chunk
+from mapsqueeze.model.kernels import kernel_sigma, query_chunk
 
 BATCH_NORM_EPS = 1e-5
 """torch.nn.BatchNorm1d's default epsilon, which the network uses."""
 
-DECODE_ROWS = 1 << 15
+DECODE_GROUP_ROWS = 1 << 12
 """Points of the last deconvolution's input per pass: the decoder runs on groups of embedding points (each point's
-children depend on it alone), so its activations take at most ~80 MB whatever the tile's size."""
+children depend on it alone), so its activations (~10 MB) mostly stay in the CPU's cache whatever the tile's size.
+(BLAS rounds some products of few rows differently in the last bits: the group size is part of the output.)"""
+
+LEAKY_BLOCK_ELEMENTS = 1 << 16
+"""Elements per pass of the in-place LeakyReLU (256 KB of float32 temporary)."""
 
 Affine = tuple[np.ndarray, np.ndarray]
 """(W (in, out), b (out,)) float32: x -> x @ W + b."""
@@ -81,9 +84,20 @@ def _affine(x: np.ndarray, layer: Affine) -> np.ndarray:
 
 def _affine_leaky_relu(x: np.ndarray, layer: Affine, slope: np.float32) -> np.ndarray:
     """LeakyReLU(x @ W + b)."""
-    out = x @ layer[0]
-    bias_leaky_relu(out, layer[1], slope)
+    out = _affine(x, layer)
+    _leaky_relu(out, slope)
     return out
+
+
+def _leaky_relu(x: np.ndarray, slope: np.float32) -> None:
+    """In place: max(x, slope * x), which is LeakyReLU for 0 < slope < 1 (the same bits as x if x > 0 else
+    slope * x), in row blocks whose temporary stays in the CPU's cache."""
+    rows = max(1, LEAKY_BLOCK_ELEMENTS // max(1, x.shape[1]))
+    scaled = np.empty((min(rows, len(x)), x.shape[1]), dtype=x.dtype)
+    for start in range(0, len(x), rows):
+        block = x[start:start + rows]
+        np.multiply(block, slope, out=scaled[:len(block)])
+        np.maximum(block, scaled[:len(block)], out=block)
 
 
 @dataclass
@@ -170,6 +184,9 @@ class InferenceNetwork:
 
     def _encoder_block(self, block: _EncoderBlock, points: np.ndarray, features: np.ndarray):
         """`kpconv.EncoderBlock.forward`: grid subsampling, KPConv of the capped radius neighbours, ResNet sum."""
+        from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors  # numba: the encoder's alone
+        from mapsqueeze.model.influences import bias_leaky_relu, cpu_influences
+
         kept = grid_subsample(points, block.grid_size)
         queries = np.ascontiguousarray(points[kept])
         neighbors = radius_neighbors(points, queries, block.kernel_radius, block.max_neighbors)
@@ -195,18 +212,33 @@ class InferenceNetwork:
         float32 normalised, children in the order of their parents."""
         points = np.ascontiguousarray(points, dtype=np.float32)
         features = np.ascontiguousarray(features, dtype=np.float32)
-        group = max(1, DECODE_ROWS // int(np.prod(self.config.upsampling_factors[:-1], dtype=np.int64)))
+        factors = self.config.upsampling_factors
+        group = max(1, DECODE_GROUP_ROWS // int(np.prod(factors[:-1], dtype=np.int64)))
+        children = int(np.prod(factors, dtype=np.int64))
+        out = np.empty((len(points) * children, 3), dtype=np.float32)
         with one_blas_thread():
-            parts = [self._decode_group(points[s:s + group], features[s:s + group])
-                     for s in range(0, len(points), group)]
-        return np.concatenate(parts) if parts else np.zeros((0, 3), dtype=np.float32)
+            for start in range(0, len(points), group):
+                stop = min(len(points), start + group)
+                self._decode_group(points[start:stop], features[start:stop], out[start * children:stop * children])
+        return out
 
-    def _decode_group(self, points: np.ndarray, features: np.ndarray) -> np.ndarray:
+    def _decode_group(self, points: np.ndarray, features: np.ndarray, out: np.ndarray) -> None:
+        """The decoder on a group of embedding points, written into `out`."""
         for block in self.decoder:
-            n = len(points)
-            hidden = _affine_leaky_relu(features, block.first, self.slope)
-            offsets = np.tanh(_affine(hidden[:, :block.hidden], block.offset)).reshape(n, block.factor, 3)
-            points = (points[:, None, :] + offsets * self.offset_scale).reshape(n * block.factor, 3)
-            features = _affine_leaky_relu(hidden[:, block.hidden:], block.feature, self.slope).reshape(
-                n * block.factor, -1)
-        return points + _affine(features, self.refine)
+            points, features = self._deconv_forward(block, points, features)
+        np.matmul(features, self.refine[0], out=out)
+        out += self.refine[1]
+        out += points
+
+    def _deconv_forward(self, block: _Deconv, points: np.ndarray, features: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """`deconv.AdaptiveDeconv.forward`: each point's `factor` children (points, features)."""
+        n = len(points)
+        hidden = _affine_leaky_relu(features, block.first, self.slope)
+        offsets = _affine(hidden[:, :block.hidden], block.offset)
+        np.tanh(offsets, out=offsets)
+        offsets *= self.offset_scale
+        offsets = offsets.reshape(n, block.factor, 3)
+        offsets += points[:, None, :]
+        children = _affine_leaky_relu(hidden[:, block.hidden:], block.feature, self.slope)
+        return offsets.reshape(n * block.factor, 3), children.reshape(n * block.factor, -1)

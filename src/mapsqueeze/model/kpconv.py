@@ -9,7 +9,8 @@ import torch
 from torch import nn
 
 from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
-from mapsqueeze.model.kernels import cpu_influences, grid_kernel_points, kernel_sigma, query_chunk
+from mapsqueeze.model.influences import cpu_influences
+from mapsqueeze.model.kernels import grid_kernel_points, kernel_sigma, query_chunk
 
 
 class KPConv(nn.Module):
