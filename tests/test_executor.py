@@ -79,6 +79,8 @@ def test_worker_pools_import_no_torch(map_points, model_dir, serial, tmp_path):
              f"print(coordinator, 'torch' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert done.stdout.split() == ["False", "False"]
+    assert msq.read_bytes() == serial[0]
+    assert np.array_equal(read_points(decoded), serial[1])
 
 
 def test_decoding_imports_no_numba(model_dir, serial, tmp_path):
@@ -88,13 +90,12 @@ def test_decoding_imports_no_numba(model_dir, serial, tmp_path):
     msq.write_bytes(serial[0])
     probe = (f"import sys, mapsqueeze; from mapsqueeze.codec import decompress; "
              f"[__import__(name) for name in decompress.WORKER_MODULES]; "
-             f"mapsqueeze.decompress_file({str(msq)!r}, {str(tmp_path / 'decoded.ply')!r}, "
+             f"mapsqueeze.decompress_file({str(msq)!r}, {str(tmp_path / 'decoded.npy')!r}, "
              f"model={str(model_dir)!r}, workers=1); "
              f"print(sorted({{'numba', 'torch', 'scipy'}} & set(sys.modules)))")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "[]"
-    assert msq.read_bytes() == serial[0]
-    assert np.array_equal(read_points(decoded), serial[1])
+    assert np.array_equal(read_points(tmp_path / "decoded.npy"), serial[1])
 
 
 @pytest.mark.slow

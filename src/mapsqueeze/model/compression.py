@@ -107,10 +107,10 @@ class CompressionModel:
             from mapsqueeze.model.autoencoder import torch_decode
 
             output = torch_decode(self.network, p, f)
-        cloud = output * self._scale
+        cloud = np.multiply(output, self._scale, out=output if output.dtype == np.float32 else None)
         if not np.isfinite(cloud).all():
             raise ModelError(f"model {self.model_id!r} decoded non-finite coordinates (broken weights?)")
-        return resample_to_count(cloud, n_points).astype(np.float32)
+        return resample_to_count(cloud, n_points).astype(np.float32, copy=False)
 
     @property
     def _scale(self) -> np.float32:
