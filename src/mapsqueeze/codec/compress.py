@@ -45,10 +45,10 @@ from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.io import PointCloud, validate_attributes, work_dir
 from mapsqueeze.metrics import d_euclidean, nearest_tree
 
-WORKER_MODULES = ("mapsqueeze.codec.compress", "mapsqueeze.model.compression", "mapsqueeze.model.influences",
-                  "mapsqueeze.geometry.grid", "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells")
-"""What compressing workers import (`codec.executor.ProcessExecutor`'s preload): numba and its kernels, the numpy
-network, the octree coder."""
+WORKER_MODULES = ("mapsqueeze.codec.compress", "mapsqueeze.model.compression", "mapsqueeze.geometry.grid",
+                  "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells", "mapsqueeze.codec.compressworker")
+"""What compressing workers import (`codec.executor.ProcessExecutor`'s preload): the numpy network, the octree
+coder, numba and its kernels, with numba's compiler started (`compressworker`)."""
 
 RAW_POINTS_PER_EMBEDDING = 4
 """A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each

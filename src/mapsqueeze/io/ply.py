@@ -88,5 +88,5 @@ def write_ply(path: Path, chunks: ChunkSource, stats: CloudStats, text: bool) ->
             with open(temp, "wb") as stream:
                 stream.write(("\n".join(header) + "\n").encode("ascii"))
                 for chunk in chunks():
-                    stream.write(_vertices(chunk, dtype).tobytes())
+                    stream.write(_vertices(chunk, dtype).view(np.uint8).data)
     return tuple(stats.dtypes)
