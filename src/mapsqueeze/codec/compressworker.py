@@ -1,6 +1,6 @@
 """Imported by the server that compress's worker processes are forked from (`compress.WORKER_MODULES`): numba's
 compiler starts here once, with one cached kernel loaded, so that every worker starts with it ready instead of
-starting it itself (~1 CPU-s and ~120 MB of resident memory a process, BENCHMARKS.md "Throughput")."""
+starting it itself (~1 CPU-s a process; its memory is shared with the server, BENCHMARKS.md "Throughput")."""
 
 import numpy as np
 
