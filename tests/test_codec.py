@@ -37,6 +37,7 @@ from mapsqueeze.codec.entropy import (
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentLayout
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
+from mapsqueeze.codec.seams import internal_faces
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.io import read_point_cloud, read_points, write_points
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model
@@ -477,8 +478,10 @@ def test_default_decode_is_each_tiles_native_count(network_only, model):
     reader, stream = open_container(network_only)
     with stream:
         assert reader.version == 3 and reader.header.default_count.name == "native"  # no post-filter: version 3
+        occupied, tile_size = {entry.index for entry in reader.entries}, np.asarray(reader.header.tile_size)
         native = sum(len(decompress_module.decode_payload(reader.header, entry, reader.payload(position), model, None,
-                                                          entry.label(position)))
+                                                          entry.label(position), faces=internal_faces(
+                                                              entry, occupied, tile_size)))
                      for position, entry in enumerate(reader.entries))
     decoded = mapsqueeze.decompress(network_only, model=model)
     assert len(decoded) == native > reader.header.n_points

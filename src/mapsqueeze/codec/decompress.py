@@ -26,6 +26,7 @@ from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.postfilter import PostFilter
 from mapsqueeze.codec.rawtile import decode_raw_tile
+from mapsqueeze.codec.seams import InternalFace, internal_faces, thin_at_faces
 from mapsqueeze.codec.tilepoints import network_points, octree_points
 from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointCloudError, MapsqueezeError, ModelError
 from mapsqueeze.geometry.resample import resample_to_count
@@ -136,11 +137,13 @@ def decode_embedding(reader: ContainerReader, position: int) -> tuple[np.ndarray
 
 
 def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, count: int | None, label: str,
-                   max_tile_points: int = DEFAULT_MAX_TILE_POINTS) -> np.ndarray:
+                   max_tile_points: int = DEFAULT_MAX_TILE_POINTS, faces: tuple[InternalFace, ...] = ()
+                   ) -> np.ndarray:
     """A tile's payload bytes decoded to `count` float32 points relative to `tile_frame`, all inside the tile's
     bounds (count None: the coding's native count, e.g. the network's whole output inside the box after the
     tile's post-filter, refused above `max_tile_points`). A network tile's output goes through the post-filter
-    its table entry signals (`codec.postfilter`) before it is resampled to `count`.
+    its table entry signals (`codec.postfilter`) and the density rule at the `faces` it shares with other tiles
+    of the file (`seams.internal_faces`; none: the tile as the encoder sees it) before it is resampled to `count`.
 
     The network grows surfaces past the tile's bounds box; those points are dropped (the neighbouring tile codes
     that space) and the count is restored from the points inside (`tilepoints.keep_inside`), so tile faces show
@@ -163,7 +166,7 @@ def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, coun
                                        f"{max_tile_points:,} points per tile; allow more with --max-tile-points N "
                                        f"(API: max_tile_points=N, at most {MAX_POINTS_PER_TILE:,})")
             local = network_points(model, points, features, entry.frame_extent_m(tile_size), count,
-                                   entry.post_filter)
+                                   entry.post_filter, faces)
     except MapsqueezeError:
         raise
     except (ValueError, IndexError, OverflowError) as exc:
@@ -223,8 +226,12 @@ def iter_decoded_clouds(
         schema = reader.attribute_schema
         metadata = schema.metadata if schema else {}
         jobs = [(position, count) for position, count in zip(selected, counts) if count != 0]
+        occupied = {entry.index for entry in reader.entries}
+        faces = {position: internal_faces(reader.entries[position], occupied, np.asarray(header.tile_size))
+                 for position, _ in jobs}
         payloads = ((reader.entries[position], reader.payload(position), count,
-                     f"{reader.name}: {reader.entries[position].label(position)}") for position, count in jobs)
+                     f"{reader.name}: {reader.entries[position].label(position)}", faces[position])
+                    for position, count in jobs)
         support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
         context = (header, model, max_tile_points, support)
         executor = open_executor(workers, dask_scheduler, context, len(jobs), WORKER_MODULES)
@@ -235,7 +242,8 @@ def iter_decoded_clouds(
                     local, native = next(decoded)
                     values = {}
                     if attributes and reader.attribute_entries:
-                        values = _tile_attributes(reader, position, local, native, count is None)
+                        values = _tile_attributes(reader, position, local, native,
+                                                  count is None and not faces[position])
                     world = tile_frame(header, reader.entries[position]) + local
                     if box is not None:
                         inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
@@ -261,19 +269,22 @@ def _tile_attributes(reader: ContainerReader, position: int, local: np.ndarray, 
     return decode_tile_attributes(stream, native, None if at_native else local, schema, tile_size, label)
 
 
-def _decode_job(context: tuple[Header, object, int, bool], item: tuple[TileEntry, bytes, int | None, str]
+def _decode_job(context: tuple[Header, object, int, bool],
+                item: tuple[TileEntry, bytes, int | None, str, tuple[InternalFace, ...]]
                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """One tile's job: (table entry, payload bytes, point count, label) -> float32 points (`decode_payload`) and,
-    when the context asks for the attribute support, the tile's default decoded points (the same array when the
-    count is the native one; else decoded again at the native count, up to MAX_POINTS_PER_TILE); context: the
-    container's header, the model, the points-per-tile limit and whether the support is wanted."""
+    """One tile's job: (table entry, payload bytes, point count, label, faces shared with other tiles) -> float32
+    points (`decode_payload`) and, when the context asks for the attribute support, the tile's default decoded
+    points as the encoder sees them (at the native count on the CPU, the points before the density rule at the
+    faces; else decoded again at the native count, up to MAX_POINTS_PER_TILE); context: the container's header,
+    the model, the points-per-tile limit and whether the support is wanted."""
     header, model, max_tile_points, support = context
-    entry, payload, count, label = item
-    local = decode_payload(header, entry, payload, model, count, label, max_tile_points)
+    entry, payload, count, label, faces = item
+    if support and count is None and getattr(model, "device", "cpu") == "cpu":
+        native = decode_payload(header, entry, payload, model, None, label, max_tile_points)
+        return thin_at_faces(native, faces), native
+    local = decode_payload(header, entry, payload, model, count, label, max_tile_points, faces)
     if not support:
         return local, None
-    if count is None and getattr(model, "device", "cpu") == "cpu":
-        return local, local
     return local, attribute_support(header, entry, payload, model, label)
 
 
