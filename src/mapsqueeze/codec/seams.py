@@ -11,7 +11,7 @@ The rule, on a network tile's decoded points, at each side of its points' box th
 another occupied tile of the file: the points within NEAR_BAND_M of the face are split into columns of
 COLUMN_M x COLUMN_M across the face and slices SLICE_M thick along it; a slice holding more points than the
 density of its column's band behind the face (BEHIND_BAND_M deep, behind NEAR_BAND_M) allows keeps an evenly
-spread subset of that many (`geometry.morton.spread_subset`). A column with nothing behind is left as it is (a
+spread subset of that many (every (n / allowed)-th along the Morton order, as `geometry.morton.spread_subset`). A column with nothing behind is left as it is (a
 surface lying along the face).
 It uses the decoded points and the tile table only, so the result does not depend on which other tiles are decoded.
 """
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapsqueeze.codec.container import TileCoding, TileEntry
-from mapsqueeze.geometry.morton import spread_subset
+from mapsqueeze.geometry.morton import morton_rank
 
 NEAR_BAND_M = 0.15
 """Depth (metres) of the band inside a face whose density is limited: the pile-up reaches 10-12 cm at e0."""
@@ -71,42 +71,47 @@ def internal_faces(entry: TileEntry, occupied: set[tuple[int, int, int]], tile_s
 
 def thin_at_faces(cloud: np.ndarray, faces: tuple[InternalFace, ...]) -> np.ndarray:
     """The (K, 3) frame-local points of a decoded tile with the density rule applied at each face (in order): a
-    subset of `cloud`, in its order (deterministic)."""
+    subset of `cloud`, in its order (deterministic); `cloud` itself when there is no face."""
     if not faces:
         return cloud
     keep = np.ones(len(cloud), dtype=bool)
     for face in faces:
-        kept = np.flatnonzero(keep)
-        keep[kept[_excess(cloud[kept], face)]] = False
+        depth = np.abs(cloud[:, face.axis].astype(np.float64) - face.plane_m)
+        banded = np.flatnonzero(keep & (depth < NEAR_BAND_M + BEHIND_BAND_M))  # the near and behind bands
+        keep[banded[_excess(cloud[banded], depth[banded], face.axis)]] = False
     return cloud[keep]
 
 
-def _excess(points: np.ndarray, face: InternalFace) -> np.ndarray:
-    """Boolean mask of the points the rule removes at one face."""
-    depth = np.abs(points[:, face.axis].astype(np.float64) - face.plane_m)
+def _excess(points: np.ndarray, depth: np.ndarray, axis: int) -> np.ndarray:
+    """Boolean mask of the points (within NEAR_BAND_M + BEHIND_BAND_M of a face across `axis`, at `depth` metres
+    from it) that the rule removes: in each (column, slice) over its allowance, all but every (n / allowed)-th
+    point along the Morton order of the points (`geometry.morton`, as `spread_subset`)."""
+    excess = np.zeros(len(points), dtype=bool)
+    if len(points) == 0:
+        return excess
     near = depth < NEAR_BAND_M
-    behind = (depth >= NEAR_BAND_M) & (depth < NEAR_BAND_M + BEHIND_BAND_M)
-    across = [axis for axis in range(3) if axis != face.axis]
-    cells = np.floor(points[:, across].astype(np.float64) / COLUMN_M).astype(np.int64)
-    _, column = np.unique(cells, axis=0, return_inverse=True)
+    cells = np.floor(np.delete(points, axis, axis=1).astype(np.float64) / COLUMN_M).astype(np.int64)
+    cells -= cells.min(axis=0)
+    _, column = np.unique(cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1], return_inverse=True)
     column = column.ravel()
-    n_columns = int(column.max()) + 1 if len(column) else 0
-    behind_counts = np.bincount(column[behind], minlength=n_columns)
+    n_columns = int(column.max()) + 1
+    behind_counts = np.bincount(column[~near], minlength=n_columns)
     # Allowed per slice: the behind band's density over the slice, rounded so that the slices of a column add up.
     n_slices = int(np.ceil(NEAR_BAND_M / SLICE_M))
     reach = np.minimum(np.arange(n_slices + 1) * SLICE_M, NEAR_BAND_M) / BEHIND_BAND_M
     cumulative = np.floor(behind_counts[:, None] * reach[None, :] + 0.5).astype(np.int64)
-    allowed = np.diff(cumulative, axis=1).ravel()  # (column, slice) -> points allowed
-    near_points = np.flatnonzero(near)
-    group = column[near_points] * n_slices + np.minimum(depth[near_points] // SLICE_M, n_slices - 1).astype(np.int64)
-    order = np.argsort(group, kind="stable")  # grouped by (column, slice), in cloud order
-    near_points, group = near_points[order], group[order]
+    allowed = np.diff(cumulative, axis=1).ravel()  # (column * n_slices + slice) -> points allowed
+    candidates = np.flatnonzero(near)
+    group = column[candidates] * n_slices + np.minimum(depth[candidates] // SLICE_M, n_slices - 1).astype(np.int64)
     counts = np.bincount(group, minlength=n_columns * n_slices)
-    starts = np.concatenate([[0], np.cumsum(counts)])
     over = (counts > allowed) & np.repeat(behind_counts > 0, n_slices)
-    excess = np.zeros(len(points), dtype=bool)
-    for g in np.flatnonzero(over):
-        members = near_points[starts[g]:starts[g + 1]]
-        excess[members] = True
-        excess[members[spread_subset(points[members], int(allowed[g]))]] = False
+    candidates, group = candidates[over[group]], group[over[group]]
+    if len(candidates) == 0:
+        return excess
+    order = np.lexsort((morton_rank(points[candidates]), group))  # by group, then along the Morton order
+    candidates, group = candidates[order], group[order]
+    n, quota = counts[group], allowed[group]
+    position = np.arange(len(group)) - np.searchsorted(group, group)  # rank within its group
+    pick = (position * quota + n - 1) // n  # the first j with j * n >= position * quota
+    excess[candidates[(pick >= quota) | (pick * n >= (position + 1) * quota)]] = True
     return excess

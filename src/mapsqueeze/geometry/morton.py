@@ -57,13 +57,19 @@ SPREAD_BITS = 16
 """Bits per axis of the grid behind `spread_subset`: 0.6 mm cells over a 40 m tile."""
 
 
-def _morton_order(points: np.ndarray) -> np.ndarray:
-    """Indices of the (N, 3) finite points sorted along the Morton order of a SPREAD_BITS grid over their box."""
+def morton_rank(points: np.ndarray) -> np.ndarray:
+    """(N,) int64 Morton codes of the (N, 3) finite points' cells in a SPREAD_BITS grid over their box: sorting by
+    them (stably) orders the points along the Morton order."""
+    points = np.asarray(points, dtype=np.float64)
     low, high = bounding_box(points)
     extent = float((high - low).max())
     scale = ((1 << SPREAD_BITS) - 1) / extent if extent > 0 else 0.0
-    cells = np.floor((points - low) * scale).astype(np.int64)
-    return np.argsort(morton_codes(cells, SPREAD_BITS), kind="stable")
+    return morton_codes(np.floor((points - low) * scale).astype(np.int64), SPREAD_BITS)
+
+
+def _morton_order(points: np.ndarray) -> np.ndarray:
+    """Indices of the (N, 3) finite points sorted along the Morton order of a SPREAD_BITS grid over their box."""
+    return np.argsort(morton_rank(points), kind="stable")
 
 
 def _spread_picks(points: np.ndarray, count: int) -> np.ndarray:
