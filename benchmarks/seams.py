@@ -8,7 +8,8 @@ then report
 - D_e near internal faces over D_e elsewhere: the paper's symmetric D_e (metrics.py) with each direction's terms
   split by whether the point lies within 1 m of a face shared by two occupied tiles (target within 5 %).
 
-    .venv/bin/python benchmarks/seams.py results/kitti_wide/kitti_seq00_scans-00000.ply --models e0,e1,e2,e3
+    .venv/bin/python benchmarks/seams.py results/kitti_wide/kitti_seq00_scans-00000.ply --models e0,e1,e2,e3 \
+        [--post-filter]
 """
 
 import argparse
@@ -69,6 +70,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("map", type=Path)
     parser.add_argument("--models", default="e0,e1,e2,e3")
+    parser.add_argument("--post-filter", action="store_true", help="compress with --post-filter auto")
     args = parser.parse_args()
     gt = read_points(args.map)
     gt_slabs = densest_slabs(gt)
@@ -78,7 +80,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|")
     for model in args.models.split(","):
         start = time.perf_counter()
-        data = mapsqueeze.compress(gt, model=model)
+        data = mapsqueeze.compress(gt, model=model, post_filter=args.post_filter)
         compress_s = time.perf_counter() - start
         start = time.perf_counter()
         rec = mapsqueeze.decompress(data)

@@ -125,7 +125,8 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
     """.msq bytes (or a .msq file path) -> (K, 3) float64 world points.
 
     By default every tile decodes to the count its file states: the native count of its coding (the network's
-    whole output inside the tile; docs/model.md, "Decoded density"), or for version 1 files its input count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
+    whole output inside the tile, thinned where it piles up at a face shared with another tile, `codec.seams`;
+    docs/model.md, "Decoded density"), or for version 1 files its input count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
     tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
     choose another density. model defaults to the shipped model named in the file; its weights must match the
     file's. A tile asked for more than max_tile_points points raises DecodeLimitError (a crafted file may claim
