@@ -92,3 +92,15 @@ def test_a_surface_along_a_face_is_kept_and_the_rule_is_a_deterministic_subset()
     assert np.count_nonzero(near_floor) < len(pile)  # the pile on the floor: thinned
     np.testing.assert_array_equal(thinned, thin_at_faces(cloud, face))
     assert thin_at_faces(cloud, ()) is cloud
+
+
+def test_attributes_follow_the_thinned_points(model, monkeypatch):
+    rng = np.random.default_rng(3)
+    two_tiles = ground(rng, 12_000, (0.01, 15.99))
+    monkeypatch.setattr(model, "decode", piled_up_decode)  # the encoder's attribute support: the tile before the rule
+    data = mapsqueeze.compress(two_tiles + [500_000.0, 4_000_000.0, 50.0], model=model, fallback=False,
+                               attributes={"intensity": (two_tiles[:, 0] * 10).astype(np.uint16)}, workers=1)
+    cloud = mapsqueeze.decompress_cloud(data, model=model, workers=1)
+    np.testing.assert_array_equal(cloud.points, mapsqueeze.decompress(data, model=model, workers=1))
+    assert len(cloud.attributes["intensity"]) == len(cloud.points) < 2 * 44_000
+    assert np.abs(cloud.attributes["intensity"] - (cloud.points[:, 0] - 500_000.0) * 10).max() < 20  # 1 m voxels
