@@ -673,3 +673,32 @@ def test_own_leaf_distances_are_the_nearest_leaf_distances_wherever_known(leaf):
     assert np.array_equal(own[known], nearest[known])
     assert known.mean() > 0.3
     assert not known[-500:].all()  # points on leaf faces are left to the search
+
+
+def test_candidate_distortion_estimates_on_samples_and_is_exact_where_candidates_are_close():
+    """D_e estimates from SAMPLE_POINTS points a side are within 2 % of the exact D_e; candidates whose estimates
+    are close get exact values, the others keep their estimates; exact=True gives d_euclidean throughout."""
+    from mapsqueeze.codec.distortion import SAMPLE_POINTS, CandidateDistortion, sample_indices
+    from mapsqueeze.metrics import d_euclidean
+
+    rng = np.random.default_rng(5)
+    tile = np.column_stack([rng.uniform(0, 30, 60_000), rng.uniform(0, 30, 60_000), rng.normal(0, 0.3, 60_000)])
+    noisy = [(tile[::2] + rng.normal(0, sigma, (30_000, 3))).astype(np.float32) for sigma in (0.05, 0.0505, 0.2)]
+    exact = [d_euclidean(tile, decoded) for decoded in noisy]
+    estimates = []
+    for decoded in noisy:
+        alone = CandidateDistortion(tile)
+        alone.add(decoded)
+        estimates.append(alone.settle()[0])
+    assert all(abs(e / x - 1) < 0.02 and e != x for e, x in zip(estimates, exact))
+    together = CandidateDistortion(tile)
+    for decoded in noisy:
+        together.add(decoded)
+    assert together.settle() == [exact[0], exact[1], estimates[2]]  # the first two are within CLOSE
+    exactly = CandidateDistortion(tile, exact=True)
+    for decoded in noisy:
+        exactly.add(decoded)
+    assert exactly.settle() == exact
+    picked = sample_indices(100_000)
+    assert len(picked) == SAMPLE_POINTS and np.all(np.diff(picked) > 0) and picked[-1] < 100_000
+    assert np.array_equal(picked, sample_indices(100_000)) and np.array_equal(sample_indices(500), np.arange(500))

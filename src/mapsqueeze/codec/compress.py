@@ -17,6 +17,7 @@ from mapsqueeze.codec.attributes import (
     build_schema,
     parse_selection,
 )
+from mapsqueeze.codec.distortion import CandidateDistortion
 from mapsqueeze.codec.container import (
     BOUNDS_STEPS,
     MAX_POINTS_PER_TILE,
@@ -43,7 +44,6 @@ from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
 from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.io import PointCloud, validate_attributes, work_dir
-from mapsqueeze.metrics import d_euclidean, nearest_tree
 
 WORKER_MODULES = ("mapsqueeze.codec.compress", "mapsqueeze.model.compression", "mapsqueeze.geometry.grid",
                   "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells", "mapsqueeze.codec.compressworker")
@@ -391,26 +391,28 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
     """The tile's embedding and its classical candidates, each with its payload and D_e: raw when the tile is sparse
     enough for raw coding to compete or a rate target is given, the octree at each leaf of OCTREE_LEAVES_M unless
     the target forbids the fallback; the network's decode post-filter setting (chosen on the decode of the
-    unquantised embedding) and that filtered decode's D_e, unless the target forbids the post-filter."""
+    unquantised embedding) and that filtered decode's D_e, unless the target forbids the post-filter. D_e values are
+    `codec.distortion`'s: estimated on samples, exact where two are close, exact throughout under a rate target
+    or with the post-filter."""
     _check_tile_size(index, len(tile_points))
     lo, hi = quantise_bounds(tile_points - tile_origin, tile_size)
     local = to_local(tile_points, frame_origin(tile_origin, lo, tile_size), tile_size)
     extent = np.subtract(hi, lo) * tile_size / BOUNDS_STEPS
     embedding = model.encode(local)
     n_embedding = len(embedding.points)
-    tree = nearest_tree(local)
-    candidates = []
+    distortion = CandidateDistortion(local, exact=target.given or target.post_filter)
+    classical = []  # (coding, payload, label) in the order their decodings were added to `distortion`
     if target.given or len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
         raw = encode_raw_tile(local, tile_size)
-        decoded = decode_raw_tile(raw, tile_size, len(local), "raw candidate")
-        candidates.append(Candidate(TileCoding.raw, raw, len(raw), d_euclidean(local, decoded, tree), "raw"))
+        distortion.add(decode_raw_tile(raw, tile_size, len(local), "raw candidate"))
+        classical.append((TileCoding.raw, raw, "raw"))
     if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:  # too sparse for the network and the octree
-        return _EncodedTile(index, len(local), lo, hi, extent, None, None, candidates)
+        return _EncodedTile(index, len(local), lo, hi, extent, None, None, _candidates(classical, distortion.settle()))
     for leaf in OCTREE_LEAVES_M if target.fallback else ():
         payload = encode_octree_tile(local, tile_size, leaf)
         decoded = octree_points(decode_octree_tile(payload, tile_size, len(local), "octree candidate"), extent, None)
-        d_e = d_euclidean(local, decoded, tree, own_leaf_distances(local, tile_size, leaf, extent))
-        candidates.append(Candidate(TileCoding.octree, payload, len(payload), d_e, f"octree {leaf:g} m"))
+        distortion.add(decoded, lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent))
+        classical.append((TileCoding.octree, payload, f"octree {leaf:g} m"))
     if refine_steps:
         embedding = model.refine(local, embedding, refine_steps)
     decoded = network_points(model, embedding.points, embedding.features, extent, None)
@@ -418,10 +420,17 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
     if target.post_filter:
         post_filter, network_d_e = choose_post_filter(local, decoded, frame_origin(tile_origin, lo, tile_size),
                                                       lambda cloud: keep_inside(cloud, extent))
+        d_e = distortion.settle()
     else:
-        network_d_e = d_euclidean(local, decoded, tree)
-    return _EncodedTile(index, len(local), lo, hi, extent, embedding.points, embedding.features, candidates,
-                        network_d_e, post_filter)
+        distortion.add(decoded)
+        *d_e, network_d_e = distortion.settle()
+    return _EncodedTile(index, len(local), lo, hi, extent, embedding.points, embedding.features,
+                        _candidates(classical, d_e), network_d_e, post_filter)
+
+
+def _candidates(classical: list[tuple[TileCoding, bytes, str]], d_e: list[float]) -> list[Candidate]:
+    return [Candidate(coding, payload, len(payload), value, label)
+            for (coding, payload, label), value in zip(classical, d_e)]
 
 
 def _code_network_candidates(encoded: list[_EncodedTile], model, precision: Precision, position_step_m: float | None,
