@@ -702,3 +702,26 @@ def test_candidate_distortion_estimates_on_samples_and_is_exact_where_candidates
     picked = sample_indices(100_000)
     assert len(picked) == SAMPLE_POINTS and np.all(np.diff(picked) > 0) and picked[-1] < 100_000
     assert np.array_equal(picked, sample_indices(100_000)) and np.array_equal(sample_indices(500), np.arange(500))
+
+
+@pytest.mark.parametrize("tile_size", [TILE, np.array([40.0, 40.0, 15.0]), np.array([1.0, 0.9, 0.5])])
+def test_octree_payloads_of_all_leaves_at_once_are_each_leafs_own(tile_size):
+    """encode_octree_tiles (one sort for every leaf) gives encode_octree_tile's payload at each leaf, built directly,
+    and the leaf centres its payload decodes to."""
+    from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, _leaf_codes, encode_octree_tiles, octree_depth
+    from mapsqueeze.baselines.octree import arithmetic_encode, occupancy_levels
+
+    rng = np.random.default_rng(8)
+    points = np.concatenate([rng.uniform(0, 1, (5000, 3)) * tile_size,
+                             np.round(rng.uniform(0, 1, (500, 3)) * tile_size / 0.4) * 0.4])  # on leaf faces
+    points = np.clip(points, 0, tile_size)
+    for leaf, (payload, centres) in zip(OCTREE_LEAVES_M, encode_octree_tiles(points, tile_size, OCTREE_LEAVES_M)):
+        edge = float(np.float32(leaf))
+        depth = octree_depth(tile_size, edge)
+        codes = _leaf_codes(points, edge, depth)
+        writer = ByteWriter()
+        writer.pack("fB", edge, depth)
+        writer.varint(len(codes))
+        writer.raw(arithmetic_encode(occupancy_levels(codes, depth)))
+        assert payload == writer.getvalue()
+        assert np.array_equal(centres, decode_octree_tile(payload, tile_size, len(points), "test"))

@@ -35,7 +35,7 @@ LEAF_SIZES_M = (0.1, 0.2, 0.4, 0.8, 1.6)
 """Leaf cell edges (metres) of the benchmark sweep."""
 
 
-def _occupancy_levels(leaf_codes: np.ndarray, depth: int) -> list[np.ndarray]:
+def occupancy_levels(leaf_codes: np.ndarray, depth: int) -> list[np.ndarray]:
     """Occupancy bytes (uint8) of each level, root first, nodes in Morton order; `leaf_codes` sorted unique."""
     levels = []
     codes = leaf_codes
@@ -62,7 +62,8 @@ def _level_model(previous_level: np.ndarray | None):
     return constriction.stream.model.Categorical(counts / counts.sum(), perfect=False)
 
 
-def _arithmetic_encode(levels: list[np.ndarray]) -> bytes:
+def arithmetic_encode(levels: list[np.ndarray]) -> bytes:
+    """The arithmetic-coded occupancy bytes of levels 0..len(levels)-1 (`occupancy_levels`, root first)."""
     coder = constriction.stream.stack.AnsCoder()
     for index in reversed(range(len(levels))):  # ANS is a stack: encode last level first
         model = _level_model(levels[index - 1] if index else None)
@@ -70,14 +71,9 @@ def _arithmetic_encode(levels: list[np.ndarray]) -> bytes:
     return coder.get_compressed().astype("<u4").tobytes()
 
 
-def encode_occupancy(cells: np.ndarray, depth: int) -> tuple[int, bytes]:
-    """(N, 3) integer leaf cells in [0, 2**depth) -> (leaf count, arithmetic-coded occupancy bytes of every level)."""
-    leaf_codes = sorted_unique(morton_codes(cells, depth))
-    return len(leaf_codes), _arithmetic_encode(_occupancy_levels(leaf_codes, depth))
-
-
 def decode_occupancy(payload: bytes, depth: int, leaf_count: int) -> np.ndarray:
-    """Inverse of `encode_occupancy`: (leaf_count, 3) int64 leaf cells in Morton order; ContainerError when corrupt."""
+    """Inverse of `arithmetic_encode` of a tree's `occupancy_levels`: (leaf_count, 3) int64 leaf cells in Morton
+    order; ContainerError when corrupt."""
     codes = np.zeros(1, dtype=np.int64)
     for occupancy in _arithmetic_decode(payload, depth, leaf_count):
         codes = _children(codes, occupancy)
@@ -108,9 +104,9 @@ class OctreeCodec(BaselineCodec):
             )
         cells = np.clip(voxel_indices(points, leaf, origin), 0, (1 << depth) - 1)
         leaf_codes = sorted_unique(morton_codes(cells, depth))
-        levels = _occupancy_levels(leaf_codes, depth)
+        levels = occupancy_levels(leaf_codes, depth)
         if self.entropy_coded:
-            payload, coding = _arithmetic_encode(levels), _ARITHMETIC
+            payload, coding = arithmetic_encode(levels), _ARITHMETIC
         else:
             payload, coding = np.concatenate(levels).tobytes(), _RAW
         header = _HEADER.pack(

@@ -34,7 +34,7 @@ from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
 from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
-from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, decode_octree_tile, encode_octree_tile, own_leaf_distances
+from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, own_leaf_distances
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
 from mapsqueeze.codec.postfilter import OFF, choose_post_filter
 from mapsqueeze.codec.tileattributes import AttributeCoder
@@ -408,10 +408,10 @@ def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_poin
         classical.append((TileCoding.raw, raw, "raw"))
     if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:  # too sparse for the network and the octree
         return _EncodedTile(index, len(local), lo, hi, extent, None, None, _candidates(classical, distortion.settle()))
-    for leaf in OCTREE_LEAVES_M if target.fallback else ():
-        payload = encode_octree_tile(local, tile_size, leaf)
-        decoded = octree_points(decode_octree_tile(payload, tile_size, len(local), "octree candidate"), extent, None)
-        distortion.add(decoded, lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent))
+    leaves = OCTREE_LEAVES_M if target.fallback else ()
+    for leaf, (payload, centres) in zip(leaves, encode_octree_tiles(local, tile_size, leaves)):
+        distortion.add(octree_points(centres, extent, None),
+                       lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent))
         classical.append((TileCoding.octree, payload, f"octree {leaf:g} m"))
     if refine_steps:
         embedding = model.refine(local, embedding, refine_steps)

@@ -13,7 +13,7 @@ import numpy as np
 
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.errors import ContainerError
-from mapsqueeze.geometry.morton import MAX_BITS
+from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes, sorted_unique
 
 OCTREE_LEAVES_M = (0.1, 0.2, 0.4, 0.8, 1.6)
 """Leaf edges (metres) the compressor tries for a tile's classical fallback (the benchmark's octree sweep)."""
@@ -35,17 +35,53 @@ def octree_depth(tile_size: np.ndarray, leaf_m: float) -> int:
 
 def encode_octree_tile(points_local: np.ndarray, tile_size: np.ndarray, leaf_m: float) -> bytes:
     """Points (N, 3) metres relative to the tile frame, in [0, tile_size] -> octree payload."""
-    from mapsqueeze.baselines.octree import encode_occupancy  # imported here: the CLI starts without the baselines
+    return encode_octree_tiles(points_local, tile_size, (leaf_m,))[0][0]
 
-    leaf_m = float(np.float32(leaf_m))
-    depth = octree_depth(tile_size, leaf_m)
-    cells = np.clip(np.floor(np.asarray(points_local, dtype=np.float64) / leaf_m), 0, (1 << depth) - 1)
-    leaf_count, occupancy = encode_occupancy(cells.astype(np.int64), depth)
-    writer = ByteWriter()
-    writer.pack("fB", leaf_m, depth)
-    writer.varint(leaf_count)
-    writer.raw(occupancy)
-    return writer.getvalue()
+
+def encode_octree_tiles(points_local: np.ndarray, tile_size: np.ndarray,
+                        leaves_m: tuple[float, ...]) -> list[tuple[bytes, np.ndarray]]:
+    """`encode_octree_tile` at each leaf edge of leaves_m, with the leaf centres (K, 3) float32 metres its payload
+    decodes to (`decode_octree_tile`'s, in Morton order). One sort serves every leaf whose float32 edge is the
+    finest's times 2^s and whose octree is s levels shallower (OCTREE_LEAVES_M in tiles wider than 1.6 m): its
+    leaves are the finest's Morton codes shifted right by 3 s bits (floor(p / (2^s l)) = floor(p / l) >> s, both in
+    float arithmetic, as scaling by 2^s is exact) and its occupancy levels the finest's first ones."""
+    from mapsqueeze.baselines.octree import arithmetic_encode, occupancy_levels  # the CLI starts without them
+
+    if not leaves_m:
+        return []
+    points = np.asarray(points_local, dtype=np.float64)
+    leaves = [float(np.float32(leaf)) for leaf in leaves_m]
+    finest = min(leaves)
+    finest_depth = octree_depth(tile_size, finest)
+    finest_codes = _leaf_codes(points, finest, finest_depth)
+    finest_levels = occupancy_levels(finest_codes, finest_depth)
+    coded = []
+    for leaf in leaves:
+        depth = octree_depth(tile_size, leaf)
+        shift = finest_depth - depth
+        if leaf == finest * 2.0**shift:
+            codes = finest_codes >> (3 * shift)
+            codes = codes[np.concatenate([[True], codes[1:] != codes[:-1]])]
+            levels = finest_levels[:depth]
+        else:
+            codes = _leaf_codes(points, leaf, depth)
+            levels = occupancy_levels(codes, depth)
+        writer = ByteWriter()
+        writer.pack("fB", leaf, depth)
+        writer.varint(len(codes))
+        writer.raw(arithmetic_encode(levels))
+        coded.append((writer.getvalue(), _leaf_centres(morton_cells(codes), leaf)))
+    return coded
+
+
+def _leaf_codes(points: np.ndarray, leaf_m: float, depth: int) -> np.ndarray:
+    """Sorted distinct Morton codes of the points' leaves (cells of edge leaf_m clipped into the depth's cube)."""
+    cells = np.clip(np.floor(points / leaf_m), 0, (1 << depth) - 1).astype(np.int64)
+    return sorted_unique(morton_codes(cells, depth))
+
+
+def _leaf_centres(cells: np.ndarray, leaf_m: float) -> np.ndarray:
+    return ((cells + 0.5) * leaf_m).astype(np.float32)
 
 
 def decode_octree_tile(payload: bytes, tile_size: np.ndarray, max_points: int, what: str) -> np.ndarray:
@@ -69,7 +105,7 @@ def decode_octree_tile(payload: bytes, tile_size: np.ndarray, max_points: int, w
         cells = decode_occupancy(reader.raw(reader.remaining), depth, leaf_count)
     except ContainerError as exc:
         raise reader.fail(str(exc)) from None
-    return ((cells + 0.5) * leaf_m).astype(np.float32)
+    return _leaf_centres(cells, leaf_m)
 
 
 def own_leaf_distances(points_local: np.ndarray, tile_size: np.ndarray, leaf_m: float,
