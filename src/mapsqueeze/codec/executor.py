@@ -26,6 +26,13 @@ ProgressCallback = Callable[[int, int], None]
 IN_FLIGHT_PER_WORKER = 2
 """Jobs submitted per worker ahead of the oldest unfinished one (keeps workers busy while results are collected)."""
 
+WORKER_MMAP_THRESHOLD_BYTES = 32 << 20
+"""Worker processes allocate blocks up to this size from malloc's heap instead of mapping each one afresh
+(glibc's largest; `_keep_freed_memory`)."""
+
+WORKER_TRIM_THRESHOLD_BYTES = 64 << 20
+"""Freed heap a worker process keeps for its next tile instead of returning it to the system (a tile's arrays)."""
+
 DASK_RETRIES = 3
 """A Dask job whose worker dies is run again on another worker this many times before the whole run fails."""
 
@@ -198,7 +205,28 @@ def _install_context(context: Any, threads: int, stderr: Any) -> None:
     global _context
     os.dup2(stderr.detach(), 2)
     set_threads(threads)
+    _keep_freed_memory()
     _context = context
+
+
+def _keep_freed_memory() -> None:
+    """Let glibc's malloc reuse a tile's freed arrays for the next tile (WORKER_MMAP_THRESHOLD_BYTES,
+    WORKER_TRIM_THRESHOLD_BYTES): with its defaults, a worker, whose heap holds little else, maps and zero-fills
+    every tile's arrays afresh (~20,000 page faults a tile, ~2 of the pool's 6 CPU-s decoding 25 tiles,
+    BENCHMARKS.md "Throughput"). Nothing changes where the C library has no mallopt."""
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(_M_MMAP_THRESHOLD, WORKER_MMAP_THRESHOLD_BYTES)
+    mallopt(_M_TRIM_THRESHOLD, WORKER_TRIM_THRESHOLD_BYTES)
+
+
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+"""mallopt's parameter numbers (glibc's malloc.h)."""
 
 
 def _run_installed(function: TileFunction, item: Any) -> Any:
