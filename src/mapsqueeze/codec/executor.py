@@ -200,8 +200,8 @@ def _received_stderr(handle: Any) -> Any:
 
 
 def _install_context(context: Any, threads: int, stderr: Any) -> None:
-    """Worker-process initialiser: write to the parent's stderr, keep the context for every job and limit the
-    threads (`set_threads`)."""
+    """Worker-process initialiser: write to the parent's stderr, keep the context for every job, limit the
+    threads (`set_threads`) and keep freed memory for the next job (`_keep_freed_memory`)."""
     global _context
     os.dup2(stderr.detach(), 2)
     set_threads(threads)
