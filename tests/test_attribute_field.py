@@ -147,12 +147,15 @@ def test_version_2_files_still_decode_as_they_did():
 
 
 def test_container_version_3_and_its_attributes_follow_the_decoded_geometry():
-    """The written version is 3; a decoded point's values are those of the nearest voxel of the default decode."""
+    """The written version is 3 (5 where a tile has patch planes); a decoded point's values are those of the
+    nearest voxel of the default decode."""
     from test_attributes import street
 
     points, intensity, classification, _ = street(6000, 2000)
     data = mapsqueeze.compress(points, attributes={"intensity": intensity, "cls": classification})
-    assert struct.unpack("<H", data[4:6])[0] == 3
+    reader, stream = open_container(data)
+    stream.close()
+    assert struct.unpack("<H", data[4:6])[0] == (5 if any(entry.post_filter for entry in reader.entries) else 3)
     default = mapsqueeze.decompress_cloud(data)
     sparse = mapsqueeze.decompress_cloud(data, n_points=3000)
     from pykdtree.kdtree import KDTree

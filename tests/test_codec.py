@@ -79,8 +79,9 @@ def compressed(map_points, model):
 
 @pytest.fixture(scope="module")
 def network_only(map_points, model):
-    """Without the octree fallback, which beats the untrained network on every tile."""
-    return mapsqueeze.compress(map_points, model=model, precision="q", fallback=False)
+    """The paper's mode: without the octree fallback, which beats the untrained network on every tile, and the
+    decode post-filter."""
+    return mapsqueeze.compress(map_points, model=model, precision="q", fallback=False, post_filter="off")
 
 
 def read_all_payloads(data: bytes) -> None:

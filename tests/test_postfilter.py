@@ -1,5 +1,5 @@
-"""The encoder-signalled decode post-filter (codec.postfilter): it raises IoU on a tile with a known surface, its
-per-tile setting round-trips through the container, the paper's mode is unchanged, and it is deterministic."""
+"""The encoder-signalled decode post-filter (codec.postfilter): both kinds raise IoU on a tile with a known surface,
+the per-tile setting round-trips through the container, the paper's mode is unchanged, and it is deterministic."""
 
 import os
 import subprocess
@@ -14,14 +14,23 @@ from mapsqueeze.codec.postfilter import (
     CANDIDATES,
     MAX_D_E_INCREASE,
     OFF,
+    PATCH,
+    PATCH_CANDIDATES,
+    PATCH_STRENGTH,
     PostFilter,
+    apply_patch_filter,
     apply_post_filter,
+    choose_patch_filter,
+    check_setting,
     choose_post_filter,
+    patch_planes_byte,
     setting_byte,
 )
 from mapsqueeze.codec.tilepoints import keep_inside
-from mapsqueeze.errors import ContainerError
-from mapsqueeze.metrics import d_euclidean, iou
+from mapsqueeze.errors import ContainerError, MapsqueezeError
+from mapsqueeze.geometry.occupancy import occupancy_ious
+from mapsqueeze.geometry.patches import patch_planes
+from mapsqueeze.metrics import IOU_VOXEL_M, d_euclidean, iou
 from mapsqueeze.model import load_model
 
 EXTENT = np.array([12.0, 12.0, 3.0])
@@ -67,9 +76,80 @@ def test_each_setting_does_what_its_byte_says():
     isolated = apply_post_filter(decoded, setting_byte(isolated=True))
     assert len(decoded) * 0.9 < len(isolated) < len(decoded)
     assert PostFilter.parse(setting_byte(snap=1, spread=2, isolated=True)) == PostFilter(16, 1, 0.10, True)
-    for byte in (0x20, 0x80, 256):
+    assert PostFilter.parse(patch_planes_byte(2)) == PostFilter(0, 2, 0.05, False, 4)
+    assert PostFilter.parse(PATCH) == PostFilter(0, 1, 0.05, False, 4)
+    assert PATCH_CANDIDATES == (PATCH, PATCH | 0x40)
+    for byte in (PATCH | 1, PATCH | 0x10, PATCH | 0x80, 0x40, 0x80, 0xC3, 256):
         with pytest.raises(ContainerError, match="post-filter"):
             PostFilter.parse(byte)
+    with pytest.raises(ValueError, match="uncropped"):
+        apply_post_filter(decoded, PATCH)
+    patch = patches()[0] + np.float32(10)  # inside the box [0, 100 m]
+    one, two = (apply_patch_filter(patch, byte, (4, 4, 4, 1), np.full(3, 100.0)) for byte in PATCH_CANDIDATES)
+    assert np.array_equal(one, patch_planes(patch, 64, PATCH_STRENGTH, 1, 0.05)) and len(one) == 2 * len(patch)
+    assert np.array_equal(two, patch_planes(patch, 64, PATCH_STRENGTH, 2, 0.05)) and len(two) == 3 * len(patch)
+
+
+def patches(seed: int = 0, n_patches: int = 400, patch: int = 64) -> np.ndarray:
+    """Decoder-ordered (n_patches x patch, 3) points: each patch a 20 cm disk of a randomly tilted plane at a
+    random place, 2 cm thick (float32 metres)."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-5, 5, (n_patches, 3))
+    normals = rng.normal(size=(n_patches, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    offsets = rng.normal(0, 0.1, (n_patches, patch, 3))
+    offsets -= np.einsum("npi,ni->np", offsets, normals)[..., None] * normals[:, None, :]
+    offsets += rng.normal(0, 0.02, (n_patches, patch, 1)) * normals[:, None, :]
+    return (centres[:, None, :] + offsets).reshape(-1, 3).astype(np.float32), normals
+
+
+def test_patch_planes_match_an_eigendecomposition():
+    points, _ = patches()
+    moved = patch_planes(points, 64, 1.0, 2, 0.05).astype(np.float64).reshape(-1, 64, 3, 3)  # point, its 2 copies
+    grouped = points.astype(np.float64).reshape(-1, 64, 3)
+    offsets = grouped - grouped.mean(axis=1, keepdims=True)
+    normals = np.linalg.eigh(np.einsum("npi,npj->nij", offsets, offsets))[1][:, :, 0]
+    across = np.einsum("npi,ni->np", offsets, normals)
+    expected = grouped - across[..., None] * normals[:, None, :]
+    assert np.abs(moved[:, :, 0] - expected).max() < 1e-5  # float32 output
+    copies = moved[:, :, 1:] - moved[:, :, :1]  # in the point's patch plane, within 5 cm of it
+    assert np.abs(np.einsum("npci,ni->npc", copies, normals)).max() < 1e-5
+    assert np.linalg.norm(copies, axis=-1).max() <= 0.05 + 1e-5
+    partly = patch_planes(points, 64, PATCH_STRENGTH, 0, 0.05).astype(np.float64).reshape(-1, 64, 3)
+    assert np.allclose(np.einsum("npi,ni->np", partly - grouped.mean(axis=1, keepdims=True), normals),
+                       (1 - PATCH_STRENGTH) * across, atol=1e-5)
+    box = np.array([5.0, 10.0, 10.0])
+    cropped = patch_planes(points, 64, PATCH_STRENGTH, 1, 0.05, box)
+    assert np.array_equal(cropped, keep_inside(patch_planes(points, 64, PATCH_STRENGTH, 1, 0.05), box))
+    assert 0 < len(cropped) < 2 * len(points)
+    with pytest.raises(ValueError, match="patches"):
+        patch_planes(points[:-1], 64, 1.0, 0, 0.05)
+
+
+def test_patch_planes_raise_iou_where_the_decode_is_thick_and_are_left_off_where_not():
+    """Patches of 256 points on 40 cm squares of a ground plane, spread 4 cm across it: the filter narrows them onto
+    the plane's 10 cm IoU cells; a decode equal to the original points gains nothing, so the encoder keeps the
+    paper's decode."""
+    rng = np.random.default_rng(1)
+    frame = np.array([500_000.0, 4_000_000.0, 50.0])
+    centres = np.stack(np.meshgrid(np.arange(0.2, 12, 0.4), np.arange(0.2, 12, 0.4)), -1).reshape(-1, 2)
+    xy = np.repeat(centres, 256, axis=0) + rng.uniform(-0.2, 0.2, (len(centres) * 256, 2))
+    original = np.column_stack([xy, np.full(len(xy), 1.05)])
+    decoded = np.column_stack([xy, 1.05 + rng.normal(0, 0.04, len(xy))]).astype(np.float32)
+    plain = keep_inside(decoded, EXTENT)
+    factors = (2, 4, 4, 4)  # patches of the last 4 levels: 256 points
+    setting, filtered = choose_patch_filter(original + frame, decoded, plain, factors, frame, EXTENT)
+    assert setting in PATCH_CANDIDATES
+    assert np.array_equal(filtered, apply_patch_filter(decoded, setting, factors, EXTENT))
+    ious = {byte: iou(original + frame, apply_patch_filter(decoded, byte, factors, EXTENT).astype(np.float64) + frame)
+            for byte in PATCH_CANDIDATES}
+    assert ious[setting] == max(ious.values()) > iou(original + frame, plain.astype(np.float64) + frame) + 0.3
+    exact = original.astype(np.float32)
+    setting, kept = choose_patch_filter(original + frame, exact, keep_inside(exact, EXTENT), factors, frame, EXTENT)
+    assert setting == OFF and np.array_equal(kept, keep_inside(exact, EXTENT))
+    outside = decoded + np.float32(20)  # nothing inside the box: every point clamped into it, as keep_inside does
+    assert np.array_equal(apply_patch_filter(outside, PATCH, factors, EXTENT),
+                          keep_inside(patch_planes(outside, 256, PATCH_STRENGTH, 1, 0.05), EXTENT))
 
 
 @pytest.fixture(scope="module")
@@ -85,8 +165,8 @@ def e0_tile():
 @pytest.fixture(scope="module")
 def filtered_and_paper(e0_tile):
     points, model = e0_tile
-    return (mapsqueeze.compress(points, model=model, post_filter=True, workers=1),
-            mapsqueeze.compress(points, model=model, workers=1))
+    return (mapsqueeze.compress(points, model=model, post_filter="auto", workers=1),
+            mapsqueeze.compress(points, model=model, post_filter="off", workers=1))
 
 
 def test_a_post_filtered_file_signals_a_filter_that_the_decoder_applies(e0_tile, filtered_and_paper):
@@ -102,17 +182,35 @@ def test_a_post_filtered_file_signals_a_filter_that_the_decoder_applies(e0_tile,
 
 
 def test_paper_mode_is_unchanged(e0_tile, filtered_and_paper):
-    """The default (--post-filter off) writes the version 3 bytes of the paper's decode, with or without
-    --no-fallback."""
-    points, model = e0_tile
+    """--post-filter off writes the version 3 bytes of the paper's decode."""
     _, paper = filtered_and_paper
     assert open_container(paper)[0].version == 3
-    assert mapsqueeze.compress(points, model=model, fallback=False, workers=1) == \
-        mapsqueeze.compress(points, model=model, fallback=False, post_filter=False, workers=1)
-    assert mapsqueeze.compress(points, model=model, post_filter=False, workers=1) == paper
     reader, stream = open_container(paper)
     with stream:
         assert all(entry.post_filter == OFF for entry in reader.entries)
+
+
+def test_the_default_signals_patch_planes_that_the_decoder_applies(e0_tile, filtered_and_paper):
+    """The default (patch) differs from the paper's file only in the tile table's post-filter bytes (version 5)
+    and its decode has a higher IoU; a version 4 file may not carry PATCH."""
+    points, model = e0_tile
+    _, paper = filtered_and_paper
+    default = mapsqueeze.compress(points, model=model, workers=1)
+    assert default == mapsqueeze.compress(points, model=model, post_filter="patch", workers=1)
+    reader, stream = open_container(default)
+    with stream:
+        settings = [entry.post_filter for entry in reader.entries]
+    assert reader.version == 5 and set(settings) <= {OFF, *PATCH_CANDIDATES} and set(settings) & set(PATCH_CANDIDATES)
+    assert len(default) == len(paper) + len(settings)
+    assert _rewritten(default, [OFF] * len(settings)) == paper
+    with_filter, without = (mapsqueeze.decompress(data, model=model, workers=1) for data in (default, paper))
+    assert iou(points, with_filter) > iou(points, without)
+    assert mapsqueeze.decompress(default, model=model, workers=2).tobytes() == with_filter.tobytes()
+    assert check_setting(PATCH, "tile", 5) == PATCH
+    with pytest.raises(ContainerError, match="version 4"):
+        check_setting(PATCH, "tile", 4)
+    with pytest.raises(MapsqueezeError, match="post-filter"):
+        mapsqueeze.compress(points, model=model, post_filter="on", workers=1)
 
 
 def _rewritten(data: bytes, settings: list[int]) -> bytes:
@@ -157,3 +255,14 @@ def test_decoding_a_filtered_file_does_not_depend_on_the_workers(e0_tile, filter
     filtered, _ = filtered_and_paper
     assert mapsqueeze.decompress(filtered, model=model, workers=1).tobytes() == \
         mapsqueeze.decompress(filtered, model=model, workers=2).tobytes()
+
+
+def test_occupancy_ious_are_the_metric_and_refuse_a_box_too_large():
+    rng = np.random.default_rng(3)
+    frame = np.array([500_000.0, 4_000_000.0, 50.0])
+    original = rng.uniform(0, 12, (5000, 3)) + frame
+    clouds = [rng.uniform(0, 12, (n, 3)).astype(np.float32) for n in (3000, 8000)]
+    expected = [iou(original, cloud.astype(np.float64) + frame) for cloud in clouds]
+    assert occupancy_ious(original, clouds, frame, IOU_VOXEL_M) == pytest.approx(expected, abs=0)
+    far = [np.array([[0, 0, 0], [5000, 5000, 500]], dtype=np.float32)]
+    assert occupancy_ious(original, far, frame, IOU_VOXEL_M) is None

@@ -67,7 +67,7 @@ def _model(model):
     return model
 
 
-def _target(max_error: float | None, bpp: float | None, fallback: bool, post_filter: bool) -> RateTarget:
+def _target(max_error: float | None, bpp: float | None, fallback: bool, post_filter: str) -> RateTarget:
     """The RateTarget of compress's arguments."""
     return RateTarget(max_error, bpp, fallback, post_filter)
 
@@ -81,7 +81,7 @@ def _models(model, target: RateTarget):
 
 def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAULT_PRECISION, *,
              refine_steps: int = 0, max_error: float | None = None, bpp: float | None = None,
-             fallback: bool = True, post_filter: bool = False, progress: ProgressCallback | None = None,
+             fallback: bool = True, post_filter: str = "patch", progress: ProgressCallback | None = None,
              keep_zero_points: bool = False, attributes: dict[str, np.ndarray] | None = None, metadata: dict | None = None,
              attribute_options: AttributeOptions = AttributeOptions(),
              workers: int | None = None, dask_scheduler: str | None = None) -> bytes:
@@ -91,10 +91,11 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
     and no model, the one of e0..e3 that meets the target best). Each tile is stored with the coding its mode
     decision picks (`codec.modes`): by default the lowest D_e at no more bytes than the network's payload;
     max_error (metres): the smallest coding with D_e <= max_error; bpp: the lowest D_e within that many bits per
-    point. fallback=False offers tiles only the network (and raw coding when sparse), not the octree: the
-    paper's mode. post_filter: choose a decode post-filter per network tile (`codec.postfilter`: IoU +0.01-0.04 on
-    the real submaps at one byte per tile, D_e up to 5 % higher, encoding ~4x and decoding ~10x slower on the CPU;
-    off by default). precision: f32, f16 or q.
+    point. fallback=False offers tiles only the network (and raw coding when sparse), not the octree (the paper's
+    mode, with post_filter="off"). post_filter: the decode post-filter per network tile (`codec.postfilter`, one byte per tile):
+    "patch" (default: patch planes where they raise the tile's IoU, ~10 ms per tile), "auto" (neighbour planes:
+    IoU +0.01-0.04 on the real submaps, D_e up to 5 % higher, seconds per tile to encode and decode) or "off" (the
+    paper's decode). precision: f32, f16 or q.
     refine_steps: encode-time refinement of each tile's embedding (0: the paper's encoder; 20: ~10 % lower D_e at
     the same size, encoding 10-45x slower on CPU; decoding unchanged). progress(done, total) is called after each tile.
     Points at exactly (0, 0, 0), which sensors write for "no return", are left out (with their attributes) unless
@@ -270,7 +271,7 @@ def tiles(source: bytes | str | os.PathLike) -> list[TileInfo]:
 def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, model=None,
                   precision: str | Precision = DEFAULT_PRECISION, *, refine_steps: int = 0,
                   max_error: float | None = None, bpp: float | None = None, fallback: bool = True,
-                  post_filter: bool = False, progress: ProgressCallback | None = None,
+                  post_filter: str = "patch", progress: ProgressCallback | None = None,
                   keep_zero_points: bool = False,
                   format: str | None = None,
                   attribute_options: AttributeOptions = AttributeOptions(), workers: int | None = None,

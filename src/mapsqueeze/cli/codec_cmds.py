@@ -14,6 +14,7 @@ from mapsqueeze.cli.io_cmds import warn_dropped
 from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
 from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE
+from mapsqueeze.codec.modes import POST_FILTER_MODES
 
 
 @contextmanager
@@ -81,21 +82,22 @@ def compress_command(
                                      help="rate budget in bits per point: the lowest D_e that fits"),
     fallback: bool = typer.Option(True, "--fallback/--no-fallback",
                                   help="let a tile fall back to the classical octree where it is better"),
-    post_filter: str = typer.Option("off", "--post-filter", metavar="auto|off",
-                                    help="decode post-filter chosen per network tile (auto: higher IoU, slower "
-                                         "encoding and decoding) or none (off, the paper's decode)"),
+    post_filter: str = typer.Option("patch", "--post-filter", metavar="patch|auto|off",
+                                    help="decode post-filter chosen per network tile: patch planes (patch, fast), "
+                                         "neighbour planes (auto: higher IoU, seconds per tile to encode and "
+                                         "decode) or none (off, the paper's decode)"),
 ) -> None:
     """Compress a map: 40 x 40 x 15 m tiles, each stored with the coding its mode decision picks (the network's
     embedding, raw points or an octree); attributes (intensity, colour, labels, ...) on a voxel grid per tile; the
     LAS header's metadata (CRS) is kept."""
     if max_error is not None and bpp is not None:
         raise typer.BadParameter("give --max-error or --bpp, not both")
-    if post_filter not in ("auto", "off"):
-        raise typer.BadParameter(f"--post-filter must be auto or off, got {post_filter!r}")
+    if post_filter not in POST_FILTER_MODES:
+        raise typer.BadParameter(f"--post-filter must be one of {'|'.join(POST_FILTER_MODES)}, got {post_filter!r}")
     options = AttributeOptions(attributes, attribute_voxel, attribute_step)
     with _tile_progress("compressing") as progress:
         summary = api.compress_file(map_path, output, model, precision, refine_steps=refine, max_error=max_error,
-                                    bpp=bpp, fallback=fallback, post_filter=post_filter == "auto",
+                                    bpp=bpp, fallback=fallback, post_filter=post_filter,
                                     progress=progress,
                                     keep_zero_points=keep_zero_points, format=in_format,
                                     attribute_options=options, workers=workers, dask_scheduler=dask_scheduler)

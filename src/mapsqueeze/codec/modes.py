@@ -22,6 +22,11 @@ from mapsqueeze.codec.container import TileCoding
 from mapsqueeze.errors import MapsqueezeError
 
 
+POST_FILTER_MODES = ("patch", "auto", "off")
+"""Decode post-filters the encoder may choose per network tile (`codec.postfilter`): patch planes where they raise
+the tile's IoU (the default, ~10 ms per tile), the neighbour-plane settings (auto: seconds per tile), none (off)."""
+
+
 @dataclass(frozen=True)
 class RateTarget:
     """What the user asks for: a D_e budget in metres or a rate budget in bits per point (at most one), whether
@@ -30,11 +35,14 @@ class RateTarget:
     max_error_m: float | None = None
     bpp: float | None = None
     fallback: bool = True  # offer the octree to every tile (False: the network, raw for sparse tiles)
-    post_filter: bool = False  # choose a decode post-filter per network tile (False: the paper's decode)
+    post_filter: str = "patch"  # decode post-filter per network tile: POST_FILTER_MODES ("off": the paper's decode)
 
     def __post_init__(self) -> None:
         if self.max_error_m is not None and self.bpp is not None:
             raise MapsqueezeError("give either a maximum error or a bits-per-point budget, not both")
+        if self.post_filter not in POST_FILTER_MODES:
+            raise MapsqueezeError(f"post-filter must be one of {', '.join(POST_FILTER_MODES)}, "
+                                  f"got {self.post_filter!r}")
         for name, value in (("maximum error (metres)", self.max_error_m), ("bits per point", self.bpp)):
             if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise MapsqueezeError(f"{name} must be a positive number, got {value!r}")

@@ -12,8 +12,9 @@ from mapsqueeze.geometry.morton import spread_subset
 _CHUNK = 1 << 15
 """Points whose neighbourhood covariances are formed at once (bounds the (chunk, k, 3) temporaries)."""
 
-_GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
-_GOLDEN_FRACTION = (np.sqrt(5.0) - 1.0) / 2.0
+GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+GOLDEN_FRACTION = (np.sqrt(5.0) - 1.0) / 2.0
+"""The disk samples' spiral: sample s at angle s x GOLDEN_ANGLE, radius r sqrt(frac(s x GOLDEN_FRACTION))."""
 
 
 def _neighbours(tree: KDTree, points: np.ndarray, k: int) -> np.ndarray:
@@ -70,8 +71,8 @@ def disk_samples(points: np.ndarray, normals: np.ndarray, radius_m: float, copie
     (N * copies, 3), the copies of point i at rows i * copies ... i * copies + copies - 1."""
     first, second = _tangents(normals)
     sample = np.arange(len(points) * copies, dtype=np.float64)
-    radius = radius_m * np.sqrt((sample * _GOLDEN_FRACTION) % 1.0)
-    angle = sample * _GOLDEN_ANGLE
+    radius = radius_m * np.sqrt((sample * GOLDEN_FRACTION) % 1.0)
+    angle = sample * GOLDEN_ANGLE
     owner = np.repeat(np.arange(len(points)), copies)
     return (points[owner] + (radius * np.cos(angle))[:, None] * first[owner]
             + (radius * np.sin(angle))[:, None] * second[owner])

@@ -1,0 +1,119 @@
+"""Patch planes: a decoded cloud reworked per decoder patch (the points one parent spawned, consecutive in the
+decoder's output) with no neighbour search, the decode post-filter's default kind (`codec.postfilter`).
+Deterministic: a single-threaded compiled kernel, fixed sample pattern, no random numbers."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapsqueeze.geometry.jit import compiled
+from mapsqueeze.geometry.surface import GOLDEN_ANGLE, GOLDEN_FRACTION
+
+
+def patch_planes(points: np.ndarray, patch: int, strength: float, copies: int, radius_m: float,
+                 upper: np.ndarray | None = None) -> np.ndarray:
+    """A decoded (K, 3) cloud reworked per decoder patch, no neighbour search: rows [i patch, (i + 1) patch) are
+    the points one parent spawned (K a multiple of `patch`). Each patch's PCA plane (centroid, unit normal of the
+    smallest covariance eigenvalue in closed form, its largest component made positive); its points moved
+    `strength` (0..1) of their offset along the normal towards it, each followed by its `copies` extra points on
+    the disk of `radius_m` metres around it in that plane (the pattern of `surface.disk_samples`, sample
+    s = i copies + j). Returns float32 points in that order, only those inside the box [0, upper] (float32 comparison, like
+    `codec.tilepoints.keep_inside`) when `upper` (metres) is given."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if patch < 1 or len(points) % patch:
+        raise ValueError(f"{len(points)} points are not whole patches of {patch}")
+    low = np.float32(-np.inf if upper is None else 0.0)
+    box = np.full(3, np.inf, dtype=np.float32) if upper is None else np.asarray(upper).astype(np.float32)
+    out = np.empty((len(points) * (1 + copies), 3), dtype=np.float32)
+    kept = _patch_planes_kernel(points, patch, float(strength), copies, float(radius_m), low, box, GOLDEN_ANGLE,
+                                GOLDEN_FRACTION, out)
+    return out[:kept]
+
+
+@compiled
+def _smallest_eigenvector(xx, yy, zz, xy, xz, yz):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3 x 3 matrix (trigonometric eigenvalues, then
+    the largest cross product of two rows of A - l I), its largest component positive; (0, 0, 1) for A = 0."""
+    q = (xx + yy + zz) / 3.0
+    p2 = (xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2.0 * (xy * xy + xz * xz + yz * yz)
+    p = np.sqrt(p2 / 6.0)
+    if not p > 0.0:
+        return 0.0, 0.0, 1.0
+    b00, b11, b22, b01, b02, b12 = (xx - q) / p, (yy - q) / p, (zz - q) / p, xy / p, xz / p, yz / p
+    r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
+    smallest = q + 2.0 * p * np.cos(np.arccos(min(1.0, max(-1.0, r))) / 3.0 + 2.0 * np.pi / 3.0)
+    a0, a1, a2 = xx - smallest, xy, xz
+    c0, c1, c2 = xy, yy - smallest, yz
+    e0, e1, e2 = xz, yz, zz - smallest
+    best_x, best_y, best_z, best = 0.0, 0.0, 1.0, 0.0
+    for ux, uy, uz, vx, vy, vz in ((a0, a1, a2, c0, c1, c2), (a0, a1, a2, e0, e1, e2), (c0, c1, c2, e0, e1, e2)):
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        norm = nx * nx + ny * ny + nz * nz
+        if norm > best:
+            best_x, best_y, best_z, best = nx, ny, nz, norm
+    if best > 0.0:
+        scale = 1.0 / np.sqrt(best)
+        best_x, best_y, best_z = best_x * scale, best_y * scale, best_z * scale
+    largest = best_x
+    if abs(best_y) > abs(largest):
+        largest = best_y
+    if abs(best_z) > abs(largest):
+        largest = best_z
+    if largest < 0.0:
+        return -best_x, -best_y, -best_z
+    return best_x, best_y, best_z
+
+
+@compiled
+def _store_inside(out, kept, x, y, z, low, box):
+    """Write (x, y, z) as float32 at row `kept` when inside [low, box]; the next free row."""
+    fx, fy, fz = np.float32(x), np.float32(y), np.float32(z)
+    if fx >= low and fy >= low and fz >= low and fx <= box[0] and fy <= box[1] and fz <= box[2]:
+        out[kept, 0], out[kept, 1], out[kept, 2] = fx, fy, fz
+        return kept + 1
+    return kept
+
+
+@compiled
+def _patch_planes_kernel(points, patch, strength, copies, radius_m, low, box, golden_angle, golden_fraction, out):
+    kept = 0
+    for start in range(0, points.shape[0], patch):
+        mx = my = mz = 0.0
+        for i in range(start, start + patch):
+            mx += points[i, 0]
+            my += points[i, 1]
+            mz += points[i, 2]
+        mx, my, mz = mx / patch, my / patch, mz / patch
+        xx = yy = zz = xy = xz = yz = 0.0
+        for i in range(start, start + patch):
+            dx, dy, dz = points[i, 0] - mx, points[i, 1] - my, points[i, 2] - mz
+            xx += dx * dx
+            yy += dy * dy
+            zz += dz * dz
+            xy += dx * dy
+            xz += dx * dz
+            yz += dy * dz
+        nx, ny, nz = _smallest_eigenvector(xx, yy, zz, xy, xz, yz)
+        # tangents as `surface._tangents`: t1 = normalise(n x e), e the axis of n's smallest component; t2 = n x t1
+        ax, ay, az = abs(nx), abs(ny), abs(nz)
+        if ax <= ay and ax <= az:
+            fx, fy, fz = 0.0, nz, -ny
+        elif ay <= az:
+            fx, fy, fz = -nz, 0.0, nx
+        else:
+            fx, fy, fz = ny, -nx, 0.0
+        length = np.sqrt(fx * fx + fy * fy + fz * fz)
+        fx, fy, fz = fx / length, fy / length, fz / length
+        sx, sy, sz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
+        for i in range(start, start + patch):
+            offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
+            px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
+            kept = _store_inside(out, kept, px, py, pz, low, box)
+            for j in range(copies):
+                sample = i * copies + j
+                radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
+                angle = sample * golden_angle
+                u, v = radius * np.cos(angle), radius * np.sin(angle)
+                kept = _store_inside(out, kept, px + u * fx + v * sx, py + u * fy + v * sy, pz + u * fz + v * sz,
+                                    low, box)
+    return kept
