@@ -45,7 +45,7 @@ def band_density(points: np.ndarray, x0: float, x1: float) -> float:
 def test_a_pile_up_inside_a_shared_face_is_thinned_to_the_density_behind_it(model, monkeypatch):
     rng = np.random.default_rng(0)
     two_tiles = ground(rng, 12_000, (0.01, 15.99)) + [500_000.0, 4_000_000.0, 50.0]
-    data = mapsqueeze.compress(two_tiles, model=model, fallback=False)
+    data = mapsqueeze.compress(two_tiles, model=model, fallback=False, post_filter="off")
     reader, stream = open_container(data)
     stream.close()
     assert sorted(entry.index[0] for entry in reader.entries) == [0, 1]
@@ -99,7 +99,7 @@ def test_attributes_follow_the_thinned_points(model, monkeypatch):
     two_tiles = ground(rng, 12_000, (0.01, 15.99))
     monkeypatch.setattr(model, "decode", piled_up_decode)  # the encoder's attribute support: the tile before the rule
     data = mapsqueeze.compress(two_tiles + [500_000.0, 4_000_000.0, 50.0], model=model, fallback=False,
-                               attributes={"intensity": (two_tiles[:, 0] * 10).astype(np.uint16)}, workers=1)
+                               post_filter="off", attributes={"intensity": (two_tiles[:, 0] * 10).astype(np.uint16)}, workers=1)
     cloud = mapsqueeze.decompress_cloud(data, model=model, workers=1)
     np.testing.assert_array_equal(cloud.points, mapsqueeze.decompress(data, model=model, workers=1))
     assert len(cloud.attributes["intensity"]) == len(cloud.points) < 2 * 44_000
