@@ -266,3 +266,18 @@ def test_occupancy_ious_are_the_metric_and_refuse_a_box_too_large():
     assert occupancy_ious(original, clouds, frame, IOU_VOXEL_M) == pytest.approx(expected, abs=0)
     far = [np.array([[0, 0, 0], [5000, 5000, 500]], dtype=np.float32)]
     assert occupancy_ious(original, far, frame, IOU_VOXEL_M) is None
+
+
+def test_info_names_each_network_tiles_post_filter(e0_tile, filtered_and_paper):
+    points, model = e0_tile
+    filtered, paper = filtered_and_paper
+    n_tiles = len(open_container(paper)[0].entries)
+    assert mapsqueeze.info(paper).tile_modes == {"network": n_tiles}
+    one, two = PATCH_CANDIDATES
+    mixed = _rewritten(paper, [two] + [one] * (n_tiles - 1))
+    modes = mapsqueeze.info(mixed).tile_modes
+    assert modes["network (patch planes, +2 points per point)"] == 1
+    assert modes.get("network (patch planes, +1 point per point)", 0) == n_tiles - 1
+    snapped = setting_byte(snap=3, spread=2, isolated=True)
+    assert mapsqueeze.info(_rewritten(paper, [snapped] * n_tiles)).tile_modes == {
+        "network (48-point planes, +1 on 10 cm disks, isolated points removed)": n_tiles}

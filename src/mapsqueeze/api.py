@@ -225,12 +225,17 @@ def info(source: bytes | str | os.PathLike) -> ContainerInfo:
 
 
 def _tile_modes(reader) -> dict[str, int]:
-    """Tiles per coding, octree tiles by leaf edge (read from the first bytes of their payloads)."""
+    """Tiles per coding: octree tiles by leaf edge (read from the first bytes of their payloads), network tiles by
+    decode post-filter setting."""
+    from mapsqueeze.codec.postfilter import OFF, PostFilter
+
     modes: dict[str, int] = {}
     for position, entry in enumerate(reader.entries):
         mode = entry.coding.name
         if entry.coding is TileCoding.octree:
             mode += f" {octree_leaf_m(reader.payload(position), entry.label(position)):g} m"
+        elif entry.coding is TileCoding.network and entry.post_filter != OFF:
+            mode += f" ({PostFilter.parse(entry.post_filter).describe()})"
         modes[mode] = modes.get(mode, 0) + 1
     return dict(sorted(modes.items()))
 

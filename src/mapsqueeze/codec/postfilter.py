@@ -129,6 +129,18 @@ class PostFilter:
         return cls(SNAP_NEIGHBOURS[byte & 3], copies, radius, bool(byte & _ISOLATED_BIT))
 
 
+    def describe(self) -> str:
+        """A few words for `info`, e.g. "patch planes, +2 points per point"."""
+        if self.patch_levels:
+            return f"patch planes, +{self.spread_copies} point{'s' if self.spread_copies > 1 else ''} per point"
+        parts = [f"{self.snap_neighbours}-point planes"] if self.snap_neighbours else []
+        if self.spread_copies:
+            parts.append(f"+{self.spread_copies} on {self.spread_radius_m * 100:g} cm disks")
+        if self.isolated:
+            parts.append("isolated points removed")
+        return ", ".join(parts) or "off"
+
+
 def check_setting(byte: int, label: str = "tile", version: int | None = None) -> int:
     """The byte, after ContainerError for unknown bits (and for patch planes in a container `version` before 5)."""
     if PostFilter.parse(byte, label).patch_levels and version is not None and version < PATCH_VERSION:
