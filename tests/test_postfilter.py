@@ -16,6 +16,7 @@ from mapsqueeze.codec.postfilter import (
     OFF,
     PATCH,
     PATCH_CANDIDATES,
+    PATCH_EXTRA_COPY_MIN_IOU_GAIN,
     PATCH_STRENGTH,
     PostFilter,
     apply_patch_filter,
@@ -143,7 +144,10 @@ def test_patch_planes_raise_iou_where_the_decode_is_thick_and_are_left_off_where
     assert np.array_equal(filtered, apply_patch_filter(decoded, setting, factors, EXTENT))
     ious = {byte: iou(original + frame, apply_patch_filter(decoded, byte, factors, EXTENT).astype(np.float64) + frame)
             for byte in PATCH_CANDIDATES}
-    assert ious[setting] == max(ious.values()) > iou(original + frame, plain.astype(np.float64) + frame) + 0.3
+    plain_iou = iou(original + frame, plain.astype(np.float64) + frame)
+    one, two = PATCH_CANDIDATES
+    assert ious[one] > plain_iou + 0.3
+    assert setting == (two if ious[two] >= ious[one] + PATCH_EXTRA_COPY_MIN_IOU_GAIN else one)
     exact = original.astype(np.float32)
     setting, kept = choose_patch_filter(original + frame, exact, keep_inside(exact, EXTENT), factors, frame, EXTENT)
     assert setting == OFF and np.array_equal(kept, keep_inside(exact, EXTENT))
@@ -281,3 +285,21 @@ def test_info_names_each_network_tiles_post_filter(e0_tile, filtered_and_paper):
     snapped = setting_byte(snap=3, spread=2, isolated=True)
     assert mapsqueeze.info(_rewritten(paper, [snapped] * n_tiles)).tile_modes == {
         "network (48-point planes, +1 on 10 cm disks, isolated points removed)": n_tiles}
+
+
+@pytest.mark.parametrize("ious, chosen", [((0.30, 0.35, 0.355), 1), ((0.30, 0.35, 0.37), 2), ((0.30, 0.305, 0.31), 1),
+                                          ((0.30, 0.30, 0.305), 0), ((0.30, 0.29, 0.31), 2), ((0.30, 0.29, 0.28), 0)])
+def test_the_second_extra_copy_must_gain_its_iou_margin(monkeypatch, ious, chosen):
+    """Of the paper's decode and one or two extra points per point, the highest IoU wins, ties to the fewer points;
+    two extra points must also gain PATCH_EXTRA_COPY_MIN_IOU_GAIN (0.01) over one."""
+    import mapsqueeze.geometry.occupancy as occupancy
+
+    assert PATCH_EXTRA_COPY_MIN_IOU_GAIN == 0.01
+    monkeypatch.setattr(occupancy, "occupancy_ious", lambda original, clouds, frame, voxel: list(ious))
+    decoded = np.random.default_rng(0).uniform(0, 10, (1024, 3)).astype(np.float32)
+    setting, cloud = choose_patch_filter(decoded.astype(np.float64), decoded, keep_inside(decoded, EXTENT),
+                                         (2, 4, 4, 4), np.zeros(3), EXTENT)
+    assert setting == (OFF, *PATCH_CANDIDATES)[chosen]
+    expected = keep_inside(decoded, EXTENT) if chosen == 0 else apply_patch_filter(decoded, setting, (2, 4, 4, 4),
+                                                                                 EXTENT)
+    assert np.array_equal(cloud, expected)

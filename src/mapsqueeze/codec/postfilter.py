@@ -72,8 +72,12 @@ def patch_planes_byte(copies: int) -> int:
 
 
 PATCH_CANDIDATES = tuple(patch_planes_byte(copies) for copies in PATCH_COPIES)
-"""The patch-plane settings the encoder tries (each the best for some of the real submaps and models; the second
-extra point per point decodes 3 instead of 2 times the native count)."""
+"""The patch-plane settings the encoder tries, in order of decoded points (the second extra point per point decodes
+3 instead of 2 times the native count)."""
+PATCH_EXTRA_COPY_MIN_IOU_GAIN = 0.01
+"""IoU two extra points per point must gain over one to be chosen: the second copy adds the native count again to
+the decoded cloud, its file and the decoding time (+50 % points), and on the real KITTI and Ouster submaps it
+gained 0.002-0.009 IoU (BENCHMARKS.md, "Decode post-filter")."""
 
 
 PLANE_NEIGHBOURS = 48
@@ -166,9 +170,10 @@ def apply_patch_filter(decoded: np.ndarray, byte: int, upsampling_factors, exten
 
 def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain: np.ndarray, upsampling_factors,
                         frame_m: np.ndarray, extent_m: np.ndarray) -> tuple[int, np.ndarray]:
-    """(setting byte, the tile's decoded points under it): of OFF and PATCH_CANDIDATES, the one whose output has the
-    highest IoU with the tile's points (`metrics.iou`'s world-anchored grid); ties go to the earlier, so OFF unless
-    a setting gains.
+    """(setting byte, the tile's decoded points under it): of OFF and PATCH_CANDIDATES, in that order, the one whose
+    output has the highest IoU with the tile's points (`metrics.iou`'s world-anchored grid), where two extra points
+    per point must also gain PATCH_EXTRA_COPY_MIN_IOU_GAIN over one; ties go to the earlier, so OFF unless a
+    setting gains.
 
     original_world: the tile's (N, 3) points in world metres; uncropped: the network's whole (K, 3) output (model
     with these upsampling factors) and plain: its points inside the tile's box [0, extent_m] (the paper's decode),
@@ -179,7 +184,11 @@ def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain
 
     ious = occupancy_ious(original_world, clouds, frame_m, IOU_VOXEL_M) or \
         [iou(original_world, cloud.astype(np.float64) + frame_m) for cloud in clouds]  # a box too large for a grid
-    best = int(np.argmax(ious))
+    best = 0
+    for candidate in range(1, len(settings)):
+        margin = PATCH_EXTRA_COPY_MIN_IOU_GAIN if candidate > 1 else 0.0
+        if ious[candidate] >= ious[candidate - 1] + margin and ious[candidate] > ious[best]:
+            best = candidate
     return settings[best], clouds[best]
 
 
