@@ -303,3 +303,23 @@ def test_the_second_extra_copy_must_gain_its_iou_margin(monkeypatch, ious, chose
     expected = keep_inside(decoded, EXTENT) if chosen == 0 else apply_patch_filter(decoded, setting, (2, 4, 4, 4),
                                                                                  EXTENT)
     assert np.array_equal(cloud, expected)
+
+
+def test_decoding_workers_preload_the_patch_kernel_only_for_files_that_use_it(monkeypatch, e0_tile, filtered_and_paper):
+    from mapsqueeze.codec import decompress as decompress_module
+
+    points, model = e0_tile
+    _, paper = filtered_and_paper
+    patched = mapsqueeze.compress(points, model=model, workers=1)
+    preloads = []
+    real = decompress_module.open_executor
+
+    def recording(workers, scheduler, context, n_jobs, preload=()):
+        preloads.append(tuple(preload))
+        return real(workers, scheduler, context, n_jobs, preload)
+
+    monkeypatch.setattr(decompress_module, "open_executor", recording)
+    for data in (paper, patched):
+        mapsqueeze.decompress(data, model=model, workers=1)
+    assert preloads == [decompress_module.WORKER_MODULES, decompress_module.PATCH_WORKER_MODULES]
+    assert "mapsqueeze.codec.patchworker" in decompress_module.PATCH_WORKER_MODULES

@@ -24,7 +24,7 @@ from mapsqueeze.codec.container import (
 )
 from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.octreetile import decode_octree_tile
-from mapsqueeze.codec.postfilter import PostFilter
+from mapsqueeze.codec.postfilter import PATCH, PostFilter
 from mapsqueeze.codec.rawtile import decode_raw_tile
 from mapsqueeze.codec.seams import InternalFace, internal_faces, thin_at_faces
 from mapsqueeze.codec.tilepoints import network_points, octree_points
@@ -34,6 +34,9 @@ from mapsqueeze.io import PointCloud
 
 WORKER_MODULES = ("mapsqueeze.codec.decompress", "mapsqueeze.model.compression")
 """What decoding workers import (`codec.executor.ProcessExecutor`'s preload): the numpy decoder, no numba."""
+PATCH_WORKER_MODULES = (*WORKER_MODULES, "mapsqueeze.codec.patchworker")
+"""What they import when a tile to decode uses patch planes: numba and the patch-plane kernel, loaded once by the
+server the workers are forked from."""
 
 MIN_DENSITY_EXTENT_M = 1.0
 """--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
@@ -234,7 +237,9 @@ def iter_decoded_clouds(
                     for position, count in jobs)
         support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
         context = (header, model, max_tile_points, support)
-        executor = open_executor(workers, dask_scheduler, context, len(jobs), WORKER_MODULES)
+        patches = any(reader.entries[position].post_filter & PATCH for position, _ in jobs)
+        executor = open_executor(workers, dask_scheduler, context, len(jobs),
+                                 PATCH_WORKER_MODULES if patches else WORKER_MODULES)
         try:
             decoded = executor.map(_decode_job, context, payloads)
             for done, (position, count) in enumerate(zip(selected, counts), start=1):
