@@ -165,7 +165,8 @@ def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq f
         ("tile size", " x ".join(f"{v:g}" for v in summary.tile_size) + " m"),
         ("tiles", f"{summary.n_tiles}: " + ", ".join(f"{count} {mode}" for mode, count in summary.tile_modes.items())),
         ("default decode", "each tile's input point count" if summary.default_count == "input"
-         else "the native count of each tile's coding (the network's whole output inside the tile)"),
+         else "the native count of each tile's coding (the network's output inside the tile after its "
+              "post-filter, thinned at faces shared with other tiles)"),
         ("points", f"{summary.n_points:,}"),
         ("file size", f"{summary.file_bytes:,} bytes (header and tile table {summary.header_bytes:,})"),
         ("bits per point", f"{summary.bits_per_point:.4f}"),
