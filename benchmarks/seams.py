@@ -9,7 +9,7 @@ then report
   split by whether the point lies within 1 m of a face shared by two occupied tiles (target within 5 %).
 
     .venv/bin/python benchmarks/seams.py results/kitti_wide/kitti_seq00_scans-00000.ply --models e0,e1,e2,e3 \
-        [--post-filter]
+        [--post-filter patch|auto|off]
 """
 
 import argparse
@@ -70,7 +70,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("map", type=Path)
     parser.add_argument("--models", default="e0,e1,e2,e3")
-    parser.add_argument("--post-filter", action="store_true", help="compress with --post-filter auto")
+    parser.add_argument("--post-filter", default="patch", choices=("patch", "auto", "off"),
+                        help="the decode post-filter to compress with (default: patch, the codec's default)")
     args = parser.parse_args()
     gt = read_points(args.map)
     gt_slabs = densest_slabs(gt)
