@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 import mapsqueeze
 from mapsqueeze.codec.container import open_container
+from mapsqueeze.codec.modes import POST_FILTER_MODES
 from mapsqueeze.io import read_points
 
 SLAB_M = 0.005
@@ -70,7 +71,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("map", type=Path)
     parser.add_argument("--models", default="e0,e1,e2,e3")
-    parser.add_argument("--post-filter", default="patch", choices=("patch", "auto", "off"),
+    parser.add_argument("--post-filter", default="patch", choices=POST_FILTER_MODES,
                         help="the decode post-filter to compress with (default: patch, the codec's default)")
     args = parser.parse_args()
     gt = read_points(args.map)
