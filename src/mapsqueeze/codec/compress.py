@@ -31,7 +31,7 @@ from mapsqueeze.codec.container import (
     serialise_container,
 )
 from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
-from mapsqueeze.codec.executor import ProgressCallback, open_executor
+from mapsqueeze.codec.executor import ProgressCallback, open_executor, start_pool_server
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
 from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, own_leaf_distances
@@ -145,6 +145,7 @@ def compress_map(
     attributes = validate_attributes(attributes, len(points), name="map")
     schema = _attribute_schema(_ranges(attributes), metadata, attribute_options)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
+    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)  # imports while tiling
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     coded = [spec.name for spec in schema.specs] if schema else []
 
@@ -197,6 +198,7 @@ def compress_chunks(
     schema = _attribute_schema(ranges, metadata, attribute_options)
     coded = [(spec.name, spec.dtype) for spec in schema.specs] if schema else []
     origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
+    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)  # imports during pass 2
     with work_dir("mapsqueeze-tiles-", spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
         for chunk in map(_as_cloud, chunks()):

@@ -64,17 +64,14 @@ class SerialExecutor:
 class ProcessExecutor:
     """A pool of `workers` local processes (forkserver: safe whatever threads this process runs), each started
     with the context and its threads limited to its share of the cores. `preload`: the modules the jobs use,
-    imported once by the server the workers are forked from (set by the first pool of this process, which starts
-    the server), not by every worker."""
+    imported once by the server the workers are forked from (set by the first pool of this process, or by
+    `start_pool_server`, which starts the server), not by every worker."""
 
     def __init__(self, workers: int, context: Any, preload: Sequence[str] = ()):
-        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
         self.workers = workers
-        start = multiprocessing.get_context("forkserver")
-        start.set_forkserver_preload(list(preload))
-        _start_quiet_forkserver(_threads_per_worker(workers))
+        start = _forkserver(workers, preload)
         self._pool = ProcessPoolExecutor(workers, mp_context=start, initializer=_install_context,
                                          initargs=(context, _threads_per_worker(workers), _ParentStderr()))
 
@@ -137,6 +134,26 @@ def open_executor(workers: int | None, dask_scheduler: str | None, context: Any,
     if workers > 1 and n_jobs > 1:
         return ProcessExecutor(min(workers, n_jobs), context, preload)
     return SerialExecutor()
+
+
+def start_pool_server(workers: int | None, dask_scheduler: str | None, n_jobs: int, preload: Sequence[str] = ()) -> None:
+    """Start now the server that `open_executor`'s process pool for these arguments will fork its workers from
+    (nothing when it will open none), so that the server imports `preload` (~0.6 CPU-s) while this process still
+    reads the input, instead of the pool's first job waiting for it."""
+    workers = default_workers() if workers is None else check_workers(workers)
+    if not dask_scheduler and workers > 1 and n_jobs > 1:
+        _forkserver(min(workers, n_jobs), preload)
+
+
+def _forkserver(workers: int, preload: Sequence[str]) -> Any:
+    """The forkserver context, its server running with `preload` (`_start_quiet_forkserver`; the first call of
+    this process starts it, later ones find it running)."""
+    import multiprocessing
+
+    start = multiprocessing.get_context("forkserver")
+    start.set_forkserver_preload(list(preload))
+    _start_quiet_forkserver(_threads_per_worker(workers))
+    return start
 
 
 def _ordered(submit: Callable[[Any], Any], items: Iterable, in_flight: int, result: Callable[[Any], Any]) -> Iterator:

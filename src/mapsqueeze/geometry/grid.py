@@ -110,9 +110,8 @@ def _capped_neighbors_kernel(cell_start, sorted_points, order, queries, first, s
                     ddx = sorted_points[s, 0] - qx
                     ddy = sorted_points[s, 1] - qy
                     ddz = sorted_points[s, 2] - qz
-                    if ddx * ddx + ddy * ddy + ddz * ddz <= radius2:
-                        found[m] = order[s]
-                        m += 1
+                    found[m] = order[s]  # kept when in the radius (no branch: the test is unpredictable)
+                    m += ddx * ddx + ddy * ddy + ddz * ddz <= radius2
         counts[q] = m
         for j in range(min(m, max_neighbors)):
             result[q, j] = found[max((m * j) // max_neighbors, j)]
