@@ -727,3 +727,20 @@ def test_octree_payloads_of_all_leaves_at_once_are_each_leafs_own(tile_size):
         writer.raw(arithmetic_encode(occupancy_levels(codes, depth)))
         assert payload == writer.getvalue()
         assert np.array_equal(centres, decode_octree_tile(payload, tile_size, len(points), "test"))
+
+
+def test_keep_inside_keeps_the_points_in_the_closed_box_and_clamps_when_none_is():
+    from mapsqueeze.codec.tilepoints import keep_inside
+
+    extent = np.array([40.0, 40.0, 15.0])
+    upper = extent.astype(np.float32)
+    rng = np.random.default_rng(4)
+    cloud = (rng.uniform(-1, 1, (20_000, 3)) * 0.05 + rng.choice([0.0, 1.0], (20_000, 3)) * upper).astype(np.float32)
+    cloud[:3] = [[0, 0, 0], upper, [np.nan, 1, 1]]  # both corners are inside, NaN is not
+    cloud[3] = [np.nextafter(np.float32(0), np.float32(-1)), 1, 1]
+    cloud[4] = [1, 1, np.nextafter(upper[2], np.float32(99))]
+    inside = np.array([all(0 <= v <= u for v, u in zip(point, upper)) for point in cloud.tolist()])
+    assert inside[:2].all() and not inside[2:5].any() and 0 < inside.mean() < 1
+    assert np.array_equal(keep_inside(cloud, extent), cloud[inside])
+    outside = cloud[~inside & ~np.isnan(cloud).any(axis=1)]
+    assert np.array_equal(keep_inside(outside, extent), np.clip(outside, np.float32(0), upper))

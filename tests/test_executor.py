@@ -167,3 +167,24 @@ def test_cli_refuses_zero_workers(tmp_path):
     done = subprocess.run([sys.executable, "-m", "mapsqueeze", "compress", str(tmp_path / "map.ply"), "-o",
                            str(tmp_path / "map.msq"), "--workers", "0"], capture_output=True, text=True)
     assert done.returncode == 2 and done.stderr.startswith("error:") and "Traceback" not in done.stderr
+
+
+def test_the_pool_server_starts_before_the_map_is_tiled_and_only_for_a_pool(map_points, model, serial, monkeypatch):
+    from mapsqueeze.codec import compress as compress_module
+
+    events = []
+    monkeypatch.setattr(executor_module, "_forkserver", lambda workers, preload: events.append(("server", workers)))
+    for workers, scheduler, jobs in ((1, None, 5), (2, None, 1), (2, "tcp://nowhere:1", 5)):
+        executor_module.start_pool_server(workers, scheduler, jobs)
+    assert events == []  # no pool will be opened: nothing started
+    executor_module.start_pool_server(3, None, 2)
+    assert events == [("server", 2)]
+
+    events.clear()
+    tile_map = compress_module.tile_map
+    monkeypatch.setattr(compress_module, "tile_map",
+                        lambda *args, **kwargs: events.append(("tiling", None)) or tile_map(*args, **kwargs))
+    monkeypatch.setattr(compress_module, "start_pool_server",
+                        lambda workers, scheduler, jobs, preload: events.append(("server", workers)))
+    assert mapsqueeze.compress(map_points, model=model, workers=1) == serial[0]
+    assert events[:2] == [("server", 1), ("tiling", None)]

@@ -211,3 +211,12 @@ def test_d_euclidean_gives_the_distances_of_scipys_tree_and_uses_known_ones():
     assert d_euclidean(gt, rec, nearest_tree(gt), known) == d_euclidean(gt, rec)
     known[1] = 100.0  # a known distance is taken as given
     assert d_euclidean(gt, rec, gt_to_rec=known) > d_euclidean(gt, rec)
+
+
+@pytest.mark.parametrize("leaf_points", [1, 64, 1000])
+def test_nearest_tree_distances_do_not_depend_on_its_leaf_size(leaf_points):
+    rng = np.random.default_rng(9)
+    points = np.round(rng.uniform(0, 5, size=(5000, 3)), 1)  # on a 10 cm grid: many equal distances
+    queries = np.round(rng.uniform(-1, 6, size=(3000, 3)), 2)
+    expected = nearest_tree(points).query(queries, k=1)[0]
+    assert np.array_equal(nearest_tree(points, leaf_points).query(queries, k=1)[0], expected)

@@ -145,7 +145,7 @@ def compress_map(
     attributes = validate_attributes(attributes, len(points), name="map")
     schema = _attribute_schema(_ranges(attributes), metadata, attribute_options)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
-    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)  # imports while tiling
+    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)  # it imports while we tile
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     coded = [spec.name for spec in schema.specs] if schema else []
 
@@ -198,7 +198,8 @@ def compress_chunks(
     schema = _attribute_schema(ranges, metadata, attribute_options)
     coded = [(spec.name, spec.dtype) for spec in schema.specs] if schema else []
     origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
-    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)  # imports during pass 2
+    # the server imports during pass 2 (the grid's cell count bounds the occupied tiles')
+    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)
     with work_dir("mapsqueeze-tiles-", spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
         for chunk in map(_as_cloud, chunks()):

@@ -136,10 +136,12 @@ def open_executor(workers: int | None, dask_scheduler: str | None, context: Any,
     return SerialExecutor()
 
 
-def start_pool_server(workers: int | None, dask_scheduler: str | None, n_jobs: int, preload: Sequence[str] = ()) -> None:
+def start_pool_server(workers: int | None, dask_scheduler: str | None, n_jobs: int,
+                      preload: Sequence[str] = ()) -> None:
     """Start now the server that `open_executor`'s process pool for these arguments will fork its workers from
     (nothing when it will open none), so that the server imports `preload` (~0.6 CPU-s) while this process still
-    reads the input, instead of the pool's first job waiting for it."""
+    reads the input, instead of the pool's first job waiting for it. n_jobs may be an upper bound (a server
+    started for a run that then needs no pool idles until this process exits)."""
     workers = default_workers() if workers is None else check_workers(workers)
     if not dask_scheduler and workers > 1 and n_jobs > 1:
         _forkserver(min(workers, n_jobs), preload)
