@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mapsqueeze.baselines.rd import distortion_at
-from mapsqueeze.bench import CLASSICAL
+from mapsqueeze.benchmark.fronts import classical_codecs
 
 
 def read_rows(path: Path) -> list[dict]:
@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("results", type=Path, nargs="+", help="results.csv files; the last one holds the classical rows")
     args = parser.parse_args()
     tables = [read_rows(path) for path in args.results]
-    classical = [row for row in tables[-1] if row["codec"] in CLASSICAL]
+    classical = [row for row in tables[-1] if row["codec"] in classical_codecs()]
     print("| cloud | setting | run | bytes | bpp | D_e (m) | D_perp (m) | IoU | decoded | front D_e | D_e / front |"
           " front IoU | IoU / front |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")

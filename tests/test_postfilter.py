@@ -80,7 +80,7 @@ def test_each_setting_does_what_its_byte_says():
     assert PostFilter.parse(patch_planes_byte(2)) == PostFilter(0, 2, 0.05, False, 4)
     assert PostFilter.parse(PATCH) == PostFilter(0, 1, 0.05, False, 4)
     assert PATCH_CANDIDATES == (PATCH, PATCH | 0x40)
-    for byte in (PATCH | 1, PATCH | 0x10, PATCH | 0x80, 0x40, 0x80, 0xC3, 256):
+    for byte in (PATCH | 1, PATCH | 0x10, PATCH | 0x80, 0x40, 0x81, 0xC0, 0xC3, 256):
         with pytest.raises(ContainerError, match="post-filter"):
             PostFilter.parse(byte)
     with pytest.raises(ValueError, match="uncropped"):

@@ -83,7 +83,8 @@ def compress_command(
     fallback: bool = typer.Option(True, "--fallback/--no-fallback",
                                   help="let a tile fall back to the classical octree where it is better"),
     post_filter: str = typer.Option("patch", "--post-filter", metavar="patch|auto|off",
-                                    help="decode post-filter chosen per network tile: patch planes (patch, fast), "
+                                    help="decode post-filter chosen per network tile: patch planes (patch, options "
+                                         "chosen per decoder patch without --max-error/--bpp), "
                                          "neighbour planes (auto: higher IoU, seconds per tile to encode and "
                                          "decode) or none (off, the paper's decode)"),
 ) -> None:

@@ -21,20 +21,22 @@ from mapsqueeze.codec.attributes import AttributeSchema
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
-from mapsqueeze.codec.postfilter import OFF, PATCH, PATCH_VERSION, check_setting
+from mapsqueeze.codec.postfilter import OFF, PATCH, PATCH_CHOICE_VERSION, PATCH_CHOICES, PATCH_VERSION, check_setting
 from mapsqueeze.codec.rawtile import axis_bits
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
-VERSION = PATCH_VERSION
-"""Newest version written (5: post-filter bytes may select patch planes, `codec.postfilter.PATCH`; written only when
-a tile does, else version 4 (a decode post-filter byte per tile) when a tile has a post-filter, else version 3, the
-same bytes as before the post-filter existed); version 3 files (attribute streams coded on the decoded geometry,
+VERSION = PATCH_CHOICE_VERSION
+"""Newest version written (6: post-filter bytes may select patch choices, `codec.postfilter.PATCH_CHOICES`, whose
+choice stream starts the tile's payload; written only when a tile has them, else version 5 (post-filter bytes may
+select patch planes, `codec.postfilter.PATCH`) when a tile has those, else version 4 (a decode post-filter byte
+per tile) when a tile has a post-filter, else version 3, the same bytes as before the post-filter existed);
+version 3 files (attribute streams coded on the decoded geometry,
 `codec.attributes`), version 2 files (attribute streams with their own voxels, `codec.attrlegacy`) and version 1
 files (also no default-count field, network and raw tiles only) still read."""
-READABLE_VERSIONS = (1, 2, 3, 4, 5)
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 ATTRIBUTES_ON_DECODED_GEOMETRY = 3
 """First version whose attribute streams are coded on the tiles' decoded geometry."""
 POST_FILTER_VERSION = 4
@@ -236,8 +238,10 @@ def serialise_container(header: Header, tiles: list[TileRecord], attributes: Att
     then the attribute section when `attributes` is given (without it the bytes are those of a geometry-only file)."""
     body = header.serialise()
     flags = 0 if attributes is None else ATTRIBUTES_FLAG
-    if any(tile.post_filter & PATCH for tile in tiles):
-        version = VERSION
+    if any(tile.post_filter == PATCH_CHOICES for tile in tiles):
+        version = PATCH_CHOICE_VERSION
+    elif any(tile.post_filter & PATCH for tile in tiles):
+        version = PATCH_VERSION
     elif any(tile.post_filter != OFF for tile in tiles):
         version = POST_FILTER_VERSION
     else:

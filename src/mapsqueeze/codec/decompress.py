@@ -24,7 +24,7 @@ from mapsqueeze.codec.container import (
 )
 from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.octreetile import decode_octree_tile
-from mapsqueeze.codec.postfilter import PATCH, PostFilter
+from mapsqueeze.codec.postfilter import PostFilter, decode_patch_choices, split_patch_choices
 from mapsqueeze.codec.rawtile import decode_raw_tile
 from mapsqueeze.codec.seams import InternalFace, internal_faces, thin_at_faces
 from mapsqueeze.codec.tilepoints import network_points, octree_points
@@ -114,10 +114,19 @@ def check_model(model, header: Header, name: str) -> None:
 
 def _embedding_from_payload(header: Header, entry: TileEntry, payload: bytes, label: str
                             ) -> tuple[np.ndarray, np.ndarray]:
+    return _network_payload(header, entry, payload, label)[:2]
+
+
+def _network_payload(header: Header, entry: TileEntry, payload: bytes, label: str
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(embedding points, features, patch choices or None) of a network tile's payload."""
+    stream = None
+    if PostFilter.parse(entry.post_filter).per_patch:
+        stream, payload = split_patch_choices(payload, label)
     points, features = header.latent.decode(payload, entry.n_points, label)
     if len(points) == 0:
         raise ContainerError(f"{label}: network payload holds no embedding points")
-    return points, features
+    return points, features, None if stream is None else decode_patch_choices(stream, len(points), label)
 
 
 def _undecodable(label: str, exc: Exception) -> ContainerError:
@@ -161,7 +170,7 @@ def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, coun
             local = octree_points(decode_octree_tile(payload, tile_size, entry.n_points, label),
                                   entry.frame_extent_m(tile_size), count)
         else:
-            points, features = _embedding_from_payload(header, entry, payload, label)
+            points, features, choices = _network_payload(header, entry, payload, label)
             native = None if count is not None else (len(points) * int(np.prod(model.config.upsampling_factors))
                                                      * (1 + PostFilter.parse(entry.post_filter).spread_copies))
             if native is not None and native > max_tile_points:
@@ -169,7 +178,7 @@ def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, coun
                                        f"{max_tile_points:,} points per tile; allow more with --max-tile-points N "
                                        f"(API: max_tile_points=N, at most {MAX_POINTS_PER_TILE:,})")
             local = network_points(model, points, features, entry.frame_extent_m(tile_size), count,
-                                   entry.post_filter, faces)
+                                   entry.post_filter, faces, choices)
     except MapsqueezeError:
         raise
     except (ValueError, IndexError, OverflowError) as exc:
@@ -237,7 +246,7 @@ def iter_decoded_clouds(
                     for position, count in jobs)
         support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
         context = (header, model, max_tile_points, support)
-        patches = any(reader.entries[position].post_filter & PATCH for position, _ in jobs)
+        patches = any(PostFilter.parse(reader.entries[position].post_filter).patch_levels for position, _ in jobs)
         executor = open_executor(workers, dask_scheduler, context, len(jobs),
                                  PATCH_WORKER_MODULES if patches else WORKER_MODULES)
         try:

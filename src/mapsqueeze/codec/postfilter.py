@@ -9,6 +9,10 @@ The post-filter reworks a decoded tile with local surface operations (`geometry.
   its PCA plane, plus 1 or 2 extra points per point on disks of PATCH_RADIUS_M in it; no neighbour search, about
   10-20 ms per 250k decoded points. The encoder tries the PATCH_CANDIDATES and keeps the one with the highest IoU
   where it beats the paper's decode (`choose_patch_filter`, about 20 ms per candidate).
+- patch choices (bit 7, chosen by `compress` over patch planes where they pay): the same patch operation with one
+  of PATCH_OPTIONS per patch (pull strength, extra points, disk radius), the choices entropy coded at the start of
+  the tile's payload (`encode_patch_choices`). The encoder decodes the tile as the decoder will and searches the
+  options patch by patch for the highest IoU with the tile's points (`choose_patch_choices`).
 - neighbour planes (bits 0-4, `--post-filter auto`): snap: each point projected onto the PCA plane of its k nearest
   decoded points; spread: extra points on small disks of those planes around each point (fills the gaps between
   clumps); isolated: points with fewer than ISOLATED_MIN_NEIGHBOURS others within ISOLATED_RADIUS_M dropped. The
@@ -18,7 +22,8 @@ The post-filter reworks a decoded tile with local surface operations (`geometry.
 One byte per tile (the tile table's post-filter field, docs/format.md); the decoder applies it. Setting 0 is the
 paper's decode. The byte: bits 0-1 snap (0 off, else SNAP_NEIGHBOURS[bits] nearest points), bits 2-3 spread
 (SPREAD[bits]: extra points per point and disk radius in metres), bit 4 isolated-point removal; or bit 5 patch
-planes (bits 0-4 zero) with bit 6: two extra points per point instead of one; bit 7 zero, bit 6 zero without bit 5.
+planes (bits 0-4 zero) with bit 6: two extra points per point instead of one; or bit 7 alone: patch choices;
+bit 7 zero otherwise, bit 6 zero without bit 5.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapsqueeze.codec.entropy import ByteReader, ByteWriter, Histogram, SymbolReader, SymbolWriter
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.surface import disk_samples, keep_supported, local_planes, project_to_planes
 from mapsqueeze.metrics import IOU_VOXEL_M, d_euclidean, iou, nearest_tree
@@ -52,6 +58,11 @@ _NEIGHBOUR_BITS = 0b11111
 PATCH_VERSION = 5
 """First container version whose tiles may carry patch planes."""
 
+PATCH_CHOICES = 1 << 7
+"""Bit 7 alone: patch choices (`apply_patch_choices`); the tile's payload starts with the choice stream."""
+PATCH_CHOICE_VERSION = 6
+"""First container version whose tiles may carry patch choices."""
+
 PATCH_LEVELS = 4
 """A patch is the points one parent of the decoder's last 4 upsampling levels spawned: all the points of one
 embedding point for the shipped models (625 for e1's 5 x 5 x 5 x 5, 1296 for e0, 256 for e2 and e3). On the real
@@ -64,6 +75,20 @@ PATCH_STRENGTH = 0.7
 more IoU on the real KITTI and Ouster submaps (1 also empties voxels the decode rightly occupies), at lower D_e."""
 PATCH_RADIUS_M = 0.05
 """Radius in metres of the extra points' disk around each point in its patch plane (5 cm gave more IoU than 10)."""
+
+
+PATCH_OPTIONS = ((0.0, 0, 0.05), (0.7, 0, 0.05), (1.0, 0, 0.05), (0.0, 1, 0.05), (0.7, 1, 0.05), (1.0, 1, 0.05),
+                 (0.0, 2, 0.05), (0.7, 2, 0.05), (1.0, 2, 0.05), (0.7, 2, 0.10), (1.0, 2, 0.10))
+"""(pull strength, extra points per point, disk radius in metres) of each patch choice, indexed by the coded
+symbol; option 0 leaves the patch as the network gives it. On the real KITTI and Ouster submaps with e0..e3 every
+option is chosen for 1-30 % of the patches; dropping a patch as a further option raised IoU by another 0.01-0.03
+but D_e by 5-45 %."""
+PATCH_CHOICE_SWEEPS = 3
+"""Greedy sweeps over a tile's patches (`geometry.occupancy.patch_option_ious`); a fourth changed < 1 % of them."""
+IOU_PER_LOG_RATE = 0.12
+"""IoU the full classical front gains per e-fold of rate on the real KITTI and Ouster submaps between 0.08 and
+1 bpp (0.10-0.13, BENCHMARKS.md "Against G-PCC and the full classical front"): patch choices are kept when they
+gain more IoU than this times the log of the payload growth they cost, so they beat moving along the front."""
 
 
 def patch_planes_byte(copies: int) -> int:
@@ -118,10 +143,14 @@ class PostFilter:
     spread_radius_m: float
     isolated: bool
     patch_levels: int = 0  # decoder levels per patch of patch planes (0: not patch planes)
+    per_patch: bool = False  # patch choices: the patch operation's parameters are chosen per patch
 
     @classmethod
     def parse(cls, byte: int, label: str = "tile") -> "PostFilter":
         """ContainerError for a byte with unknown bits or patch planes combined with a neighbour-plane field."""
+        if byte == PATCH_CHOICES:
+            return cls(0, max(option[1] for option in PATCH_OPTIONS), max(option[2] for option in PATCH_OPTIONS),
+                       False, PATCH_LEVELS, True)
         patch = 0 <= byte <= 255 and bool(byte & PATCH)
         if not 0 <= byte <= 255 or (byte & _NEIGHBOUR_BITS if patch else byte & ~_NEIGHBOUR_BITS):
             raise ContainerError(f"{label}: unknown post-filter setting 0x{byte:02x}")
@@ -135,6 +164,8 @@ class PostFilter:
 
     def describe(self) -> str:
         """A few words for `info`, e.g. "patch planes, +2 points per point"."""
+        if self.per_patch:
+            return "patch planes chosen per patch"
         if self.patch_levels:
             return f"patch planes, +{self.spread_copies} point{'s' if self.spread_copies > 1 else ''} per point"
         parts = [f"{self.snap_neighbours}-point planes"] if self.snap_neighbours else []
@@ -146,8 +177,11 @@ class PostFilter:
 
 
 def check_setting(byte: int, label: str = "tile", version: int | None = None) -> int:
-    """The byte, after ContainerError for unknown bits (and for patch planes in a container `version` before 5)."""
-    if PostFilter.parse(byte, label).patch_levels and version is not None and version < PATCH_VERSION:
+    """The byte, after ContainerError for unknown bits (and for patch planes in a container `version` before 5,
+    patch choices before 6)."""
+    setting = PostFilter.parse(byte, label)
+    first = PATCH_CHOICE_VERSION if setting.per_patch else PATCH_VERSION
+    if setting.patch_levels and version is not None and version < first:
         raise ContainerError(f"{label}: post-filter setting 0x{byte:02x} in a version {version} file")
     return byte
 
@@ -190,6 +224,112 @@ def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain
         if ious[candidate] >= ious[candidate - 1] + margin and ious[candidate] > ious[best]:
             best = candidate
     return settings[best], clouds[best]
+
+
+def _reworked(points: np.ndarray, option: int, extent_m: np.ndarray | None) -> np.ndarray:
+    """One decoder patch's (P, 3) points under PATCH_OPTIONS[option] (`patches.patch_planes` on the patch alone,
+    so its disk samples do not depend on the other patches' options), those inside [0, extent_m] (all when None);
+    float32."""
+    from mapsqueeze.geometry.patches import patch_planes  # numba: loaded only where a tile has patch planes
+
+    strength, copies, radius = PATCH_OPTIONS[option]
+    return patch_planes(points, len(points), strength, copies, radius, extent_m)
+
+
+def apply_patch_choices(decoded: np.ndarray, choices: np.ndarray, upsampling_factors, extent_m: np.ndarray
+                        ) -> np.ndarray:
+    """The tile's decoded points under patch choices: patch i of the network's whole (uncropped, in decoder order)
+    (K, 3) output reworked by PATCH_OPTIONS[choices[i]], cropped to the tile's box [0, extent_m] (all of them
+    clamped into it when none is inside); float32 metres, patch after patch."""
+    patch = int(np.prod(upsampling_factors[-PATCH_LEVELS:], dtype=np.int64))
+    if len(decoded) != patch * len(choices):
+        raise ValueError(f"{len(choices)} patch choices for {len(decoded)} points in patches of {patch}")
+    for box in (extent_m, None):
+        parts = [_reworked(decoded[i * patch:(i + 1) * patch], int(option), box) for i, option in enumerate(choices)]
+        cloud = np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
+        if box is not None and (len(cloud) or not len(decoded)):
+            return cloud
+    return np.clip(cloud, np.float32(0), np.asarray(extent_m).astype(np.float32))
+
+
+def encode_patch_choices(choices: np.ndarray) -> bytes:
+    """The payload prefix of patch choices: varint stream length, then the stream (varint count of choices, their
+    histogram, `entropy.Histogram`, and their ANS words)."""
+    choices = np.asarray(choices, dtype=np.int64)
+    histogram = Histogram.fit(choices)
+    symbols = SymbolWriter()
+    symbols.histogram(choices, histogram)
+    head = ByteWriter()
+    head.varint(len(choices))
+    histogram.write(head)
+    stream = head.getvalue() + symbols.getvalue()
+    prefix = ByteWriter()
+    prefix.varint(len(stream))
+    return prefix.getvalue() + stream
+
+
+def split_patch_choices(payload: bytes, label: str) -> tuple[bytes, bytes]:
+    """(choice stream, the rest: the latent payload) of a patch-choice tile's payload; ContainerError when the
+    stream's length does not fit in it."""
+    reader = ByteReader(payload, f"{label}: patch choices")
+    stream = reader.raw(reader.varint(limit=len(payload) + 1))
+    return stream, reader.raw(reader.remaining)
+
+
+def decode_patch_choices(stream: bytes, n_patches: int, label: str) -> np.ndarray:
+    """The (n_patches,) option indices of a choice stream (`encode_patch_choices`); ContainerError when it is
+    corrupt, holds other than n_patches symbols or names an option outside PATCH_OPTIONS."""
+    reader = ByteReader(stream, f"{label}: patch choices")
+    count = reader.varint(limit=2**32)
+    if count != n_patches:
+        raise reader.fail(f"{count} choices for {n_patches} patches")
+    histogram = Histogram.read(reader)
+    if not 0 <= histogram.low < len(PATCH_OPTIONS) or histogram.span > 2 * len(PATCH_OPTIONS):
+        raise reader.fail(f"choice alphabet {histogram.low}..{histogram.low + histogram.span - 1} beyond the "
+                          f"{len(PATCH_OPTIONS)} options")
+    symbols = SymbolReader(reader.raw(reader.remaining), f"{label}: patch choices")
+    try:
+        choices = symbols.histogram(histogram, n_patches)
+    except (ValueError, RuntimeError) as exc:
+        raise reader.fail(f"undecodable choice stream ({exc})") from None
+    symbols.finish()
+    if len(choices) and (choices.min() < 0 or choices.max() >= len(PATCH_OPTIONS)):
+        raise reader.fail(f"choice beyond the {len(PATCH_OPTIONS)} options")
+    return choices
+
+
+def start_option(byte: int) -> int:
+    """The patch option equal to a tile's OFF or patch-plane setting (up to the disk samples' numbering)."""
+    setting = PostFilter.parse(byte)
+    if byte == OFF:
+        return 0
+    if not setting.patch_levels or setting.per_patch:
+        raise ValueError(f"post-filter setting 0x{byte:02x} has no patch option")
+    return PATCH_OPTIONS.index((PATCH_STRENGTH, setting.spread_copies, PATCH_RADIUS_M))
+
+
+def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsampling_factors, frame_m: np.ndarray,
+                         extent_m: np.ndarray, byte: int, payload_bytes: int) -> np.ndarray | None:
+    """The tile's patch choices, or None where they do not pay: a greedy search (`occupancy.patch_option_ious`,
+    PATCH_CHOICE_SWEEPS sweeps from the option of the tile's setting `byte`) for the highest IoU with the tile's
+    points; kept when the IoU gain exceeds IOU_PER_LOG_RATE x ln((payload_bytes + choice bytes) / payload_bytes).
+
+    original_world: the tile's (N, 3) points in world metres; uncropped: the network's whole (K, 3) output for the
+    embedding the decoder sees, in its order, tile-local metres relative to the world point `frame_m`."""
+    from mapsqueeze.geometry.occupancy import patch_option_ious  # numba: loaded only where choices are searched
+
+    patch = int(np.prod(upsampling_factors[-PATCH_LEVELS:], dtype=np.int64))
+    options = [[_reworked(uncropped[start:start + patch], option, extent_m) for start in range(0, len(uncropped), patch)]
+               for option in range(len(PATCH_OPTIONS))]
+    start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)
+    found = patch_option_ious(original_world, options, start, frame_m, IOU_VOXEL_M, PATCH_CHOICE_SWEEPS)
+    if found is None:
+        return None
+    choices, before, after = found
+    extra = len(encode_patch_choices(choices))
+    if after - before <= IOU_PER_LOG_RATE * np.log((payload_bytes + extra) / payload_bytes):
+        return None
+    return choices
 
 
 def apply_post_filter(cloud: np.ndarray, byte: int, planes: tuple[np.ndarray, np.ndarray] | None = None

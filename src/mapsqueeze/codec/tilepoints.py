@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapsqueeze.codec.postfilter import OFF, PostFilter, apply_patch_filter, apply_post_filter
+from mapsqueeze.codec.postfilter import OFF, PostFilter, apply_patch_choices, apply_patch_filter, apply_post_filter
 from mapsqueeze.codec.seams import InternalFace, thin_at_faces
 from mapsqueeze.geometry.resample import resample_to_count
 
@@ -25,15 +25,20 @@ def keep_inside(cloud: np.ndarray, extent_m: np.ndarray) -> np.ndarray:
 
 
 def network_points(model, points: np.ndarray, features: np.ndarray, extent_m: np.ndarray,
-                   count: int | None, post_filter: int = OFF, faces: tuple[InternalFace, ...] = ()) -> np.ndarray:
+                   count: int | None, post_filter: int = OFF, faces: tuple[InternalFace, ...] = (),
+                   choices: np.ndarray | None = None) -> np.ndarray:
     """The network's whole output for an embedding, cropped to the box (the neighbouring tile codes the space
     beyond it, so no point is moved onto a face), reworked by the tile's decode post-filter setting and cropped
     again (`codec.postfilter`; OFF: the paper's decode; patch planes work on the whole output, before the crop),
     thinned where it piles up inside the `faces` it shares with other tiles (`codec.seams`; none: the encoder's view
-    of a tile), then resampled to `count` (None: all of it)."""
+    of a tile), then resampled to `count` (None: all of it). `choices`: the tile's patch choices (post-filter
+    PATCH_CHOICES only)."""
     decoded = model.decode(points, features)
-    patch_planes = PostFilter.parse(post_filter).patch_levels
-    if patch_planes:
+    setting = PostFilter.parse(post_filter)
+    patch_planes = setting.patch_levels
+    if setting.per_patch:
+        cloud = apply_patch_choices(decoded, choices, model.config.upsampling_factors, extent_m)
+    elif patch_planes:
         cloud = apply_patch_filter(decoded, post_filter, model.config.upsampling_factors, extent_m)
     else:
         cloud = keep_inside(decoded, extent_m)

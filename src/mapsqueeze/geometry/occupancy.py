@@ -54,3 +54,114 @@ def _mark_voxels(points, frame, voxel, low, shape, bit, grid):
         y = np.int64(np.floor((np.float64(points[i, 1]) + frame[1]) / voxel[1])) - low[1]
         z = np.int64(np.floor((np.float64(points[i, 2]) + frame[2]) / voxel[2])) - low[2]
         grid[(x * shape[1] + y) * shape[2] + z] |= bit
+
+
+def patch_option_ious(original: np.ndarray, options: list[list[np.ndarray]], start: np.ndarray, frame_m: np.ndarray,
+                      voxel_m: tuple[float, float, float], sweeps: int
+                      ) -> tuple[np.ndarray, float, float] | None:
+    """(choice per patch, IoU of `start`, IoU of the choices) of a greedy search for the option of each patch that
+    maximises the occupancy-grid IoU (as `metrics.iou`) of the union of the patches' points with `original`.
+
+    original: (N, 3) world metres; options[k][i]: patch i's float32 tile-local points under option k (relative to
+    the world point frame_m); start: (n,) the first choice of each patch. Each sweep visits the patches in order
+    and gives each the option (ties: its current one, then the lowest) that maximises the IoU with every other
+    patch as chosen; it stops after `sweeps` sweeps or one that changes nothing. None when the voxel box holds
+    more than _MAX_OCCUPANCY_VOXELS voxels."""
+    frame_m = np.asarray(frame_m, dtype=np.float64)
+    voxel = np.asarray(voxel_m, dtype=np.float64)
+    corners = list(bounding_box(original))
+    corners += [corner.astype(np.float64) + frame_m for patches in options for cloud in patches if len(cloud)
+                for corner in bounding_box(cloud)]
+    low = np.floor(np.min(corners, axis=0) / voxel).astype(np.int64)
+    shape = np.floor(np.max(corners, axis=0) / voxel).astype(np.int64) - low + 1
+    if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:
+        return None
+    grid = np.zeros(int(np.prod(shape)), dtype=np.uint8)
+    _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
+    counts = np.array([[len(cloud) for cloud in patches] for patches in options], dtype=np.int64)
+    offsets = np.zeros(counts.size + 1, dtype=np.int64)
+    np.cumsum(counts.ravel(), out=offsets[1:])
+    points = np.concatenate([cloud for patches in options for cloud in patches]) if offsets[-1] else \
+        np.zeros((0, 3), np.float32)
+    cells = np.empty(len(points), dtype=np.int64)
+    _voxel_cells(np.ascontiguousarray(points), frame_m, voxel, low, shape, cells)
+    choice = np.array(start, dtype=np.int64)
+    before, after = _greedy_choices(grid, cells, offsets, len(options), len(choice), choice, sweeps)
+    return choice, before, after
+
+
+@compiled
+def _voxel_cells(points, frame, voxel, low, shape, cells):
+    """The grid cell of each point's IoU voxel (as `_mark_voxels`)."""
+    for i in range(points.shape[0]):
+        x = np.int64(np.floor((np.float64(points[i, 0]) + frame[0]) / voxel[0])) - low[0]
+        y = np.int64(np.floor((np.float64(points[i, 1]) + frame[1]) / voxel[1])) - low[1]
+        z = np.int64(np.floor((np.float64(points[i, 2]) + frame[2]) / voxel[2])) - low[2]
+        cells[i] = (x * shape[1] + y) * shape[2] + z
+
+
+@compiled
+def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, sweeps):
+    """Greedy search of `patch_option_ious` on cell lists: patch i's cells under option k are
+    cells[offsets[k n + i]:offsets[k n + i + 1]]; `choice` updated in place; (IoU before, IoU after)."""
+    occupied = np.zeros(original.shape[0], dtype=np.int32)  # decoded points per cell
+    stamp = np.full(original.shape[0], -1, dtype=np.int64)
+    n_original = 0
+    for cell in range(original.shape[0]):
+        n_original += original[cell]
+    for i in range(n_patches):
+        k = choice[i] * n_patches + i
+        for j in range(offsets[k], offsets[k + 1]):
+            occupied[cells[j]] += 1
+    shared = false = 0
+    for cell in range(original.shape[0]):
+        if occupied[cell] > 0:
+            if original[cell]:
+                shared += 1
+            else:
+                false += 1
+    before = shared / max(1, n_original + false)
+    tag = 0
+    for _ in range(sweeps):
+        changed = False
+        for i in range(n_patches):
+            k = choice[i] * n_patches + i
+            for j in range(offsets[k], offsets[k + 1]):
+                cell = cells[j]
+                occupied[cell] -= 1
+                if occupied[cell] == 0:
+                    if original[cell]:
+                        shared -= 1
+                    else:
+                        false -= 1
+            best, best_value = choice[i], -1.0
+            for option in range(n_options):
+                k = option * n_patches + i
+                gained = added = 0
+                for j in range(offsets[k], offsets[k + 1]):
+                    cell = cells[j]
+                    if occupied[cell] == 0 and stamp[cell] != tag:
+                        stamp[cell] = tag
+                        if original[cell]:
+                            gained += 1
+                        else:
+                            added += 1
+                tag += 1
+                value = (shared + gained) / max(1, n_original + false + added)
+                if value > best_value or (value == best_value and option == choice[i]):
+                    best, best_value = option, value
+            if best != choice[i]:
+                changed = True
+                choice[i] = best
+            k = best * n_patches + i
+            for j in range(offsets[k], offsets[k + 1]):
+                cell = cells[j]
+                if occupied[cell] == 0:
+                    if original[cell]:
+                        shared += 1
+                    else:
+                        false += 1
+                occupied[cell] += 1
+        if not changed:
+            break
+    return before, shared / max(1, n_original + false)

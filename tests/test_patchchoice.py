@@ -1,0 +1,178 @@
+"""Patch choices (codec.postfilter.PATCH_CHOICES): the encoder's per-patch search raises IoU, the choice stream
+round-trips and corrupt streams are refused, files without choices keep their version and bytes."""
+
+import numpy as np
+import pytest
+
+import mapsqueeze
+from mapsqueeze.codec.entropy import ByteReader
+from mapsqueeze.codec.container import TileRecord, open_container, serialise_container
+from mapsqueeze.codec.postfilter import (
+    IOU_PER_LOG_RATE,
+    OFF,
+    PATCH,
+    PATCH_CANDIDATES,
+    PATCH_CHOICES,
+    PATCH_OPTIONS,
+    PostFilter,
+    apply_patch_choices,
+    apply_patch_filter,
+    check_setting,
+    choose_patch_choices,
+    decode_patch_choices,
+    encode_patch_choices,
+    split_patch_choices,
+)
+from mapsqueeze.codec.tilepoints import keep_inside
+from mapsqueeze.errors import ContainerError
+from mapsqueeze.geometry.occupancy import patch_option_ious
+from mapsqueeze.metrics import IOU_VOXEL_M, iou
+from mapsqueeze.model import load_model
+
+FRAME = np.array([500_000.0, 4_000_000.0, 50.0])
+EXTENT = np.array([12.0, 12.0, 4.0])
+FACTORS = (4, 4, 4, 4)  # patches of the last 4 levels: 256 points
+
+
+def mixed_patches(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(original in world metres, decoder-ordered float32 tile-local output) of 40 cm squares of a ground at
+    z = 1.05 m, one patch of 256 points each: the odd patches are the flat ground spread 4 cm across it (a pull
+    onto the patch plane helps), the even ones 40 cm tall blocks of vegetation, decoded exactly (a pull empties
+    voxels)."""
+    rng = np.random.default_rng(seed)
+    centres = np.stack(np.meshgrid(np.arange(0.2, 12, 0.4), np.arange(0.2, 12, 0.4)), -1).reshape(-1, 2)
+    xy = np.repeat(centres, 256, axis=0) + rng.uniform(-0.2, 0.2, (len(centres) * 256, 2))
+    thick = (np.arange(len(xy)) // 256) % 2 == 1
+    z = np.where(thick, 1.05, 1.05 + rng.uniform(0, 0.4, len(xy)))
+    original = np.column_stack([xy, z])
+    z = z + np.where(thick, rng.normal(0, 0.04, len(xy)), 0)
+    return original + FRAME, np.column_stack([xy, z]).astype(np.float32)
+
+
+def test_per_patch_choices_beat_every_single_setting_and_the_search_reports_the_metric():
+    original, decoded = mixed_patches()
+    choices = choose_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, 10_000)
+    assert choices is not None and len(choices) == len(decoded) // 256
+    cloud = apply_patch_choices(decoded, choices, FACTORS, EXTENT)
+    chosen = iou(original, cloud.astype(np.float64) + FRAME)
+    singles = [iou(original, apply_patch_filter(decoded, byte, FACTORS, EXTENT).astype(np.float64) + FRAME)
+               for byte in PATCH_CANDIDATES] + [iou(original, keep_inside(decoded, EXTENT).astype(np.float64) + FRAME)]
+    assert chosen > max(singles) + 0.02
+    assert set(choices[0::2]) != set(choices[1::2])  # the exact and the thick patches get different options
+    start = np.zeros(len(choices), dtype=np.int64)
+    options = [[apply_patch_choices(decoded[i * 256:(i + 1) * 256], [option], FACTORS, EXTENT)
+                for i in range(len(choices))] for option in range(len(PATCH_OPTIONS))]
+    found, before, after = patch_option_ious(original, options, start, FRAME, IOU_VOXEL_M, 3)
+    assert np.array_equal(found, choices)
+    assert before == pytest.approx(iou(original, keep_inside(decoded, EXTENT).astype(np.float64) + FRAME), abs=1e-12)
+    assert after == pytest.approx(chosen, abs=1e-12)
+
+
+def test_choices_are_left_off_where_they_do_not_pay():
+    """A decode equal to the original gains nothing; a tiny payload makes the stream cost more than it gains."""
+    original, decoded = mixed_patches()
+    exact = (original - FRAME).astype(np.float32)
+    assert choose_patch_choices(original, exact, FACTORS, FRAME, EXTENT, OFF, 10_000) is None
+    assert choose_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, 1) is None
+    assert IOU_PER_LOG_RATE == 0.12
+
+
+def test_the_choice_stream_round_trips_and_corrupt_ones_are_refused():
+    weights = 0.7 ** np.arange(len(PATCH_OPTIONS))
+    choices = np.random.default_rng(0).choice(len(PATCH_OPTIONS), 500, p=weights / weights.sum())
+    prefix = encode_patch_choices(choices)
+    payload = prefix + b"latent bytes"
+    stream, rest = split_patch_choices(payload, "tile")
+    assert rest == b"latent bytes" and np.array_equal(decode_patch_choices(stream, 500, "tile"), choices)
+    counts = np.bincount(choices)
+    entropy_bits = -(counts[counts > 0] * np.log2(counts[counts > 0] / 500)).sum()
+    assert len(prefix) * 8 < entropy_bits + 8 * 20 < 500 * np.log2(len(PATCH_OPTIONS))  # entropy coded
+    single = encode_patch_choices(np.full(7, 3))
+    assert np.array_equal(decode_patch_choices(split_patch_choices(single, "t")[0], 7, "t"), np.full(7, 3))
+    for bad, count in ((stream[:-4], 500), (stream + b"\0\0\0\0", 500), (stream[:3], 500), (stream, 900), (stream, 400)):
+        with pytest.raises(ContainerError, match="patch choices"):
+            decode_patch_choices(bad, count, "tile")
+    with pytest.raises(ContainerError, match="patch choices"):
+        split_patch_choices(b"\x7f" + prefix[1:10], "tile")  # a stream longer than the payload
+    outside = encode_patch_choices(np.full(5, len(PATCH_OPTIONS)))  # option 11 of 0..10
+    with pytest.raises(ContainerError, match="options"):
+        decode_patch_choices(split_patch_choices(outside, "t")[0], 5, "t")
+
+
+def test_the_setting_byte_and_version_of_patch_choices():
+    setting = PostFilter.parse(PATCH_CHOICES)
+    assert setting.per_patch and setting.patch_levels == 4 and setting.spread_copies == 2
+    assert setting.describe() == "patch planes chosen per patch"
+    assert check_setting(PATCH_CHOICES, "tile", 6) == PATCH_CHOICES
+    with pytest.raises(ContainerError, match="version 5"):
+        check_setting(PATCH_CHOICES, "tile", 5)
+
+
+@pytest.fixture(scope="module")
+def cluttered():
+    """A 40 m tile of ground, a wall, poles and bushes at UTM coordinates (the learned decode spreads poles and
+    bushes over many empty voxels), and the shipped e0 model."""
+    rng = np.random.default_rng(0)
+    n = 30_000
+    ground = np.column_stack([rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.normal(0.5, 0.02, n)])
+    wall = np.column_stack([rng.uniform(0, 40, n // 3), rng.normal(20, 0.02, n // 3), rng.uniform(0.5, 8, n // 3)])
+    poles = [np.column_stack([rng.normal(x, 0.05, 400), rng.normal(y, 0.05, 400), rng.uniform(0.5, 5, 400)])
+             for x, y in rng.uniform(2, 38, (15, 2))]
+    bushes = [rng.normal(centre, 0.6, (800, 3)) for centre in np.column_stack([rng.uniform(2, 38, (10, 2)),
+                                                                                 np.full(10, 1.5)])]
+    return np.concatenate([ground, wall, *poles, *bushes]) + FRAME, load_model("e0")
+
+
+def test_the_default_writes_patch_choices_that_raise_iou_and_decode_the_same_on_any_workers(cluttered):
+    points, model = cluttered
+    default = mapsqueeze.compress(points, model=model, workers=1)
+    two_tiles = np.concatenate([points, points + [40.0, 0.0, 0.0]])  # the choices searched by 2 worker processes
+    assert mapsqueeze.compress(two_tiles, model=model, workers=2) == mapsqueeze.compress(two_tiles, model=model,
+                                                                                         workers=1)
+    reader, stream = open_container(default)
+    with stream:
+        entries = reader.entries
+        payloads = [reader.payload(position) for position in range(len(entries))]
+    assert reader.version == 6 and PATCH_CHOICES in {entry.post_filter for entry in entries}
+    decoded = mapsqueeze.decompress(default, model=model, workers=1)
+    assert mapsqueeze.decompress(default, model=model, workers=2).tobytes() == decoded.tobytes()
+    # the same embeddings with the choice streams taken out and per-tile patch planes: version 5, lower IoU
+    records = []
+    for entry, payload in zip(entries, payloads):
+        if entry.post_filter == PATCH_CHOICES:
+            payload = split_patch_choices(payload, "tile")[1]
+        setting = PATCH if entry.post_filter == PATCH_CHOICES else entry.post_filter
+        records.append(TileRecord(entry.index, entry.n_points, entry.bounds_lo, entry.bounds_hi, entry.coding,
+                                  payload, setting))
+    per_tile = serialise_container(reader.header, records)
+    assert open_container(per_tile)[0].version == 5
+    assert iou(points, decoded) > iou(points, mapsqueeze.decompress(per_tile, model=model, workers=1)) + 0.01
+    assert mapsqueeze.info(default).tile_modes.get("network (patch planes chosen per patch)", 0) >= 1
+
+
+def test_the_paper_mode_and_rate_targets_write_no_choices(cluttered):
+    points, model = cluttered
+    f16 = mapsqueeze.compress(points, model=model, precision="f16", workers=1)  # choices on f16 embeddings too
+    assert open_container(f16)[0].version == 6 and len(mapsqueeze.decompress(f16, model=model, workers=1))
+    assert open_container(mapsqueeze.compress(points, model=model, post_filter="off", workers=1))[0].version == 3
+    reader = open_container(mapsqueeze.compress(points, model=model, bpp=0.5, workers=1))[0]
+    assert all(entry.post_filter != PATCH_CHOICES for entry in reader.entries) and reader.version <= 5
+
+
+def test_a_corrupt_choice_stream_in_a_file_is_a_container_error(cluttered):
+    """Choices naming an option beyond PATCH_OPTIONS, the tile's CRC recomputed: refused by the stream's parsing."""
+    points, model = cluttered
+    reader, stream = open_container(mapsqueeze.compress(points, model=model, workers=1))
+    with stream:
+        entries = reader.entries
+        payloads = [reader.payload(position) for position in range(len(entries))]
+    records = []
+    for entry, payload in zip(entries, payloads):
+        if entry.post_filter == PATCH_CHOICES:
+            choices, latent = split_patch_choices(payload, "t")
+            count = ByteReader(choices, "t").varint()  # the stream starts with its count of choices
+            payload = encode_patch_choices(np.full(count, len(PATCH_OPTIONS))) + latent
+        records.append(TileRecord(entry.index, entry.n_points, entry.bounds_lo, entry.bounds_hi, entry.coding,
+                                  payload, entry.post_filter))
+    with pytest.raises(ContainerError, match="patch choices: choice alphabet 11"):
+        mapsqueeze.decompress(serialise_container(reader.header, records), model=model, workers=1)
