@@ -94,7 +94,7 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
     point. fallback=False offers tiles only the network (and raw coding when sparse), not the octree (the paper's
     mode, with post_filter="off"). post_filter: the decode post-filter per network tile (`codec.postfilter`, one byte per tile):
     "patch" (default: patch planes where they raise the tile's IoU, ~10 ms per tile; without max_error or bpp,
-    their options chosen per decoder patch where that pays, +0.3-0.8 s per tile), "auto" (neighbour planes:
+    their options chosen per decoder patch where that pays, +0.4-0.8 s per tile), "auto" (neighbour planes:
     IoU +0.01-0.04 on the real submaps, D_e up to 5 % higher, seconds per tile to encode and decode) or "off" (the
     paper's decode). precision: f32, f16 or q.
     refine_steps: encode-time refinement of each tile's embedding (0: the paper's encoder; 20: ~10 % lower D_e at

@@ -82,16 +82,17 @@ PATCH_OPTIONS = ((0.0, 0, 0.05), (0.7, 0, 0.05), (1.0, 0, 0.05), (0.0, 1, 0.05),
 """(pull strength, extra points per point, disk radius in metres) of each patch choice, indexed by the coded
 symbol; option 0 leaves the patch as the network gives it. On the real KITTI and Ouster submaps with e0..e3 each
 option is chosen for 2-28 % of the patches. Dropping a patch as a twelfth option raised IoU by another 0.015-0.039
-(e1, e3) but D_e by 8-50 %; four copies on 10-15 cm disks as further options raised it by 0.006-0.009 for 20 %
+(e1, e3) but D_e by 8-50 %; four further options (more copies, wider disks) raised it by 0.006-0.009 for 11-21 %
 more decoded points (BENCHMARKS.md, "Patch choices")."""
 PATCH_CHOICE_SWEEPS = 3
 """Greedy sweeps over a tile's patches (`geometry.occupancy.patch_option_ious`): on the real KITTI and Ouster
 submaps with e0..e3, 1 / 2 / 3 sweeps reach all but 0.0017 / 0.0002 / 0.0001 of the IoU of 8; a fourth changed at
 most 2 of 193-1407 patches."""
 IOU_PER_LOG_RATE = 0.12
-"""IoU the full classical front gains per e-fold of rate on the real KITTI and Ouster submaps between 0.08 and
-1 bpp (0.10-0.13, BENCHMARKS.md "Against G-PCC and the full classical front"): patch choices are kept when they
-gain more IoU than this times the log of the payload growth they cost, so they beat moving along the front."""
+"""IoU the full classical front gains per e-fold of rate on the real KITTI and Ouster submaps: 0.10-0.13 between
+their shipped rate points from 0.08 to 1 bpp, except 0.01 between KITTI's e2 and e3 (BENCHMARKS.md, "Against G-PCC
+and the full classical front: the default decode"). Patch choices are kept when they gain more IoU than this
+times the log of the payload growth they cost, so they beat moving along the front."""
 
 
 def patch_planes_byte(copies: int) -> int:
