@@ -31,14 +31,13 @@ from mapsqueeze.codec.container import (
     serialise_container,
 )
 from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
-from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.codec.executor import ProgressCallback, open_executor, start_pool_server
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
 from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, own_leaf_distances
 from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
-from mapsqueeze.codec.postfilter import (OFF, PATCH_CHOICES, choose_patch_choices, choose_patch_filter,
-                                         choose_post_filter, encode_patch_choices)
+from mapsqueeze.codec.patchchoice import PatchChooser
+from mapsqueeze.codec.postfilter import OFF, choose_patch_filter, choose_post_filter
 from mapsqueeze.codec.tileattributes import AttributeCoder
 from mapsqueeze.codec.tilepoints import keep_inside, network_points, octree_points
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
@@ -298,7 +297,7 @@ def _compress_tiles(
         if target.bpp is None:
             choices = [choose_for_error(tile.candidates, target.max_error_m) if target.max_error_m is not None
                        else choose(tile.candidates, _network_bytes(tile)) for tile in encoded]
-            per_patch = (_PatchChooser(tile_source, workers, dask_scheduler)
+            per_patch = (PatchChooser(tile_source, workers, dask_scheduler, WORKER_MODULES)
                          if target.post_filter == "patch" and not target.given else None)
             data = _assemble(encoded, choices, model, latent, origin, n_points, streams, per_patch)
         else:  # the payload budget is what the file may hold less the header and table of the last attempt
@@ -324,7 +323,7 @@ _RATE_ATTEMPTS = 4
 
 def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, latent: LatentCodec,
               origin: np.ndarray, n_points: int, attributes: AttributeCoder,
-              patch_chooser: _PatchChooser | None = None) -> bytes:
+              patch_chooser: PatchChooser | None = None) -> bytes:
     """The container of the chosen codings (the latent codec refitted over the tiles that kept the network), with
     the attribute section `attributes` codes on their decoded geometry; with patch choices where they pay when a
     `patch_chooser` is given."""
@@ -470,55 +469,6 @@ def _code_network_candidates(encoded: list[_EncodedTile], model, precision: Prec
         payload = latent.encode(tile.points, tile.features)
         tile.candidates.append(Candidate(TileCoding.network, payload, len(payload), tile.network_d_e, "network"))
     return latent
-
-
-@dataclass(frozen=True)
-class _PatchChooser:
-    """Searches patch choices (`postfilter.choose_patch_choices`) for each tile that kept the network, on the decode
-    of its embedding as the file codes it (in the decoder's order), by `workers` processes or a Dask cluster; where
-    they pay, the tile's post-filter becomes PATCH_CHOICES and the choice stream is put before its payload. The
-    mode decision was made on the payload without the stream (it adds 4-10 % on the real submaps)."""
-
-    tile_source: Callable[[], Iterable[tuple[tuple[int, int, int], np.ndarray, dict]]]
-    workers: int | None
-    dask_scheduler: str | None
-
-    def __call__(self, encoded: list[_EncodedTile], model, latent: LatentCodec, origin: np.ndarray) -> None:
-        network = [position for position, tile in enumerate(encoded) if tile.choice.coding is TileCoding.network]
-        wanted = set(network)
-        items = ((encoded[position].index, index, encoded[position].bounds_lo, encoded[position].extent_m,
-                  encoded[position].post_filter, encoded[position].choice.payload, points)
-                 for position, (index, points, _) in enumerate(self.tile_source()) if position in wanted)
-        state = ByteWriter()  # the codec as the header stores it (its entropy models do not pickle)
-        latent.write(state)
-        context = (model, latent.precision, latent.layout, state.getvalue(), origin)
-        executor = open_executor(self.workers, self.dask_scheduler, context, len(network), WORKER_MODULES)
-        try:
-            for position, choices in zip(network, executor.map(_patch_choice_job, context, items)):
-                if choices is not None:
-                    tile = encoded[position]
-                    payload = encode_patch_choices(choices) + tile.choice.payload
-                    tile.post_filter = PATCH_CHOICES
-                    tile.choice = Candidate(TileCoding.network, payload, len(payload), tile.choice.d_e,
-                                            tile.choice.label)
-        finally:
-            executor.close(abort=sys.exc_info()[0] is not None)
-
-
-def _patch_choice_job(context: tuple, item: tuple) -> np.ndarray | None:
-    """One tile's patch choices or None: (encoded index, given index, bounds_lo, extent_m, post-filter setting,
-    latent payload, float64 world points); context: the model, the latent codec's precision, layout and state
-    (`LatentCodec.write`) and the grid's origin."""
-    model, precision, layout, state, origin = context
-    latent = LATENT_CODECS[precision].read(ByteReader(state, "latent codec"), layout)
-    expected, index, bounds_lo, extent, post_filter, payload, points = item
-    if tuple(index) != tuple(expected):
-        raise MapsqueezeError(f"tile {tuple(index)} given where tile {tuple(expected)} was encoded")
-    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
-    embedding_points, features = latent.decode(payload, len(points), f"tile {tuple(index)}")
-    frame = frame_origin(origin + np.asarray(index) * tile_size, bounds_lo, tile_size)
-    return choose_patch_choices(np.asarray(points, dtype=np.float64), model.decode(embedding_points, features),
-                                model.config.upsampling_factors, frame, extent, post_filter, len(payload))
 
 
 def _recode_chosen(encoded: list[_EncodedTile], latent: LatentCodec) -> LatentCodec:

@@ -242,10 +242,11 @@ def _reworked(points: np.ndarray, option: int, extent_m: np.ndarray | None) -> n
 
 def apply_patch_choices(decoded: np.ndarray, choices: np.ndarray, upsampling_factors, extent_m: np.ndarray
                         ) -> np.ndarray:
-    """The tile's decoded points under patch choices: patch i of the network's whole (uncropped, in decoder order)
-    (K, 3) output reworked by PATCH_OPTIONS[choices[i]], cropped to the tile's box [0, extent_m] (all of them
-    clamped into it when none is inside); float32 metres, patch after patch."""
-    patch = int(np.prod(upsampling_factors[-PATCH_LEVELS:], dtype=np.int64))
+    """The tile's decoded points under patch choices: patch i (the points embedding point i spawned, consecutive
+    rows) of the network's whole (uncropped, in decoder order) (K, 3) output reworked by PATCH_OPTIONS[choices[i]],
+    cropped to the tile's box [0, extent_m] (all of them clamped into it when none is inside); float32 metres,
+    patch after patch."""
+    patch = int(np.prod(upsampling_factors, dtype=np.int64))
     if len(decoded) != patch * len(choices):
         raise ValueError(f"{len(choices)} patch choices for {len(decoded)} points in patches of {patch}")
     for box in (extent_m, None):
@@ -314,7 +315,7 @@ def start_option(byte: int) -> int:
 
 def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsampling_factors, frame_m: np.ndarray,
                          extent_m: np.ndarray, byte: int, payload_bytes: int) -> np.ndarray | None:
-    """The tile's patch choices, or None where they do not pay: a greedy search (`occupancy.patch_option_ious`,
+    """The tile's patch choices (one per embedding point), or None where they do not pay: a greedy search (`occupancy.patch_option_ious`,
     PATCH_CHOICE_SWEEPS sweeps from the option of the tile's setting `byte`) for the highest IoU with the tile's
     points; kept when the IoU gain exceeds IOU_PER_LOG_RATE x ln((payload_bytes + choice bytes) / payload_bytes).
 
@@ -322,7 +323,7 @@ def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
     embedding the decoder sees, in its order, tile-local metres relative to the world point `frame_m`."""
     from mapsqueeze.geometry.occupancy import patch_option_ious  # numba: loaded only where choices are searched
 
-    patch = int(np.prod(upsampling_factors[-PATCH_LEVELS:], dtype=np.int64))
+    patch = int(np.prod(upsampling_factors, dtype=np.int64))  # the points of one embedding point
     options = [[_reworked(uncropped[start:start + patch], option, extent_m) for start in range(0, len(uncropped), patch)]
                for option in range(len(PATCH_OPTIONS))]
     start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)
