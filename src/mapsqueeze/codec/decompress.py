@@ -33,10 +33,8 @@ from mapsqueeze.geometry.resample import resample_to_count
 from mapsqueeze.io import PointCloud
 
 WORKER_MODULES = ("mapsqueeze.codec.decompress", "mapsqueeze.model.compression")
-"""What decoding workers import (`codec.executor.ProcessExecutor`'s preload): the numpy decoder, no numba."""
-PATCH_WORKER_MODULES = (*WORKER_MODULES, "mapsqueeze.codec.patchworker")
-"""What they import when a tile to decode uses patch planes: numba and the patch-plane kernel, loaded once by the
-server the workers are forked from."""
+"""What decoding workers import (`codec.executor.ProcessExecutor`'s preload): the numpy decoder and post-filters,
+no numba."""
 
 MIN_DENSITY_EXTENT_M = 1.0
 """--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
@@ -246,9 +244,7 @@ def iter_decoded_clouds(
                     for position, count in jobs)
         support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
         context = (header, model, max_tile_points, support)
-        patches = any(PostFilter.parse(reader.entries[position].post_filter).patch_levels for position, _ in jobs)
-        executor = open_executor(workers, dask_scheduler, context, len(jobs),
-                                 PATCH_WORKER_MODULES if patches else WORKER_MODULES)
+        executor = open_executor(workers, dask_scheduler, context, len(jobs), WORKER_MODULES)
         try:
             decoded = executor.map(_decode_job, context, payloads)
             for done, (position, count) in enumerate(zip(selected, counts), start=1):

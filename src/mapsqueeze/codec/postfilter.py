@@ -190,12 +190,18 @@ def check_setting(byte: int, label: str = "tile", version: int | None = None) ->
     return byte
 
 
-def apply_patch_filter(decoded: np.ndarray, byte: int, upsampling_factors, extent_m: np.ndarray) -> np.ndarray:
+def apply_patch_filter(decoded: np.ndarray, byte: int, upsampling_factors, extent_m: np.ndarray,
+                       compiled: bool = False) -> np.ndarray:
     """The tile's decoded points under the patch-plane setting `byte`: the network's whole (uncropped, in decoder
-    order) (K, 3) output of a model with these upsampling factors reworked (`geometry.surface.patch_planes`) and
-    cropped to the tile's box [0, extent_m] as `tilepoints.keep_inside` crops (all clamped into it when none is
-    inside); float32 metres."""
-    from mapsqueeze.geometry.patches import patch_planes  # numba: loaded only where a tile has patch planes
+    order) (K, 3) output of a model with these upsampling factors reworked (`geometry.patchesnumpy.patch_planes`)
+    and cropped to the tile's box [0, extent_m] as `tilepoints.keep_inside` crops (all clamped into it when none is
+    inside); float32 metres. compiled=True runs numba's kernel of it (`geometry.patches`: the same bytes in about
+    half the time, but loading numba costs a process ~120 MB and 0.4-0.9 CPU-s), for the encoder, which loads
+    numba anyway; the decoder runs numpy's."""
+    if compiled:
+        from mapsqueeze.geometry.patches import patch_planes
+    else:
+        from mapsqueeze.geometry.patchesnumpy import patch_planes
 
     setting = PostFilter.parse(byte)
     patch = int(np.prod(upsampling_factors[-setting.patch_levels:], dtype=np.int64))
@@ -217,7 +223,8 @@ def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain
     with these upsampling factors) and plain: its points inside the tile's box [0, extent_m] (the paper's decode),
     both in tile-local metres relative to the world point `frame_m`."""
     settings = (OFF, *PATCH_CANDIDATES)
-    clouds = [plain] + [apply_patch_filter(uncropped, byte, upsampling_factors, extent_m) for byte in PATCH_CANDIDATES]
+    clouds = [plain] + [apply_patch_filter(uncropped, byte, upsampling_factors, extent_m, compiled=True)
+                        for byte in PATCH_CANDIDATES]
     from mapsqueeze.geometry.occupancy import occupancy_ious  # numba: loaded only where a filter is chosen
 
     ious = occupancy_ious(original_world, clouds, frame_m, IOU_VOXEL_M) or \

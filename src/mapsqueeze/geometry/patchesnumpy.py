@@ -1,0 +1,143 @@
+"""Patch planes in numpy, without numba: the same bytes as the compiled kernel of `geometry.patches` (every
+floating-point operation in the kernel's order; sums added point by point, arccos and the patches' cos from the C
+library as numba's), about 2x its time per call. The decoder uses it, so that no decoding process loads numba
+(~120 MB and 0.4-0.9 CPU-s a process, BENCHMARKS.md "Throughput"); the encoder, which loads numba anyway, uses
+the compiled kernel."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapsqueeze.geometry.surface import GOLDEN_ANGLE, GOLDEN_FRACTION
+
+_BLOCK_POINTS = 1 << 16
+"""Points reworked at once (whole patches; bounds the float64 temporaries to a few MB)."""
+
+
+def checked_points(points: np.ndarray, patch: int, upper: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.float32, np.ndarray]:
+    """(contiguous float64 points, lower and upper float32 box bounds) of `patch_planes`'s arguments; ValueError
+    unless the points are whole patches."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if patch < 1 or len(points) % patch:
+        raise ValueError(f"{len(points)} points are not whole patches of {patch}")
+    low = np.float32(-np.inf if upper is None else 0.0)
+    box = np.full(3, np.inf, dtype=np.float32) if upper is None else np.asarray(upper).astype(np.float32)
+    return points, low, box
+
+
+def patch_planes(points: np.ndarray, patch: int, strength: float, copies: int, radius_m: float,
+                 upper: np.ndarray | None = None) -> np.ndarray:
+    """A decoded (K, 3) cloud reworked per decoder patch, no neighbour search: rows [i patch, (i + 1) patch) are
+    the points one parent spawned (K a multiple of `patch`). Each patch's PCA plane (centroid, unit normal of the
+    smallest covariance eigenvalue in closed form, its largest component made positive); its points moved
+    `strength` (0..1) of their offset along the normal towards it, each followed by its `copies` extra points on
+    the disk of `radius_m` metres around it in that plane (the pattern of `surface.disk_samples`, sample
+    s = i copies + j). Returns float32 points in that order, only those inside the box [0, upper] (float32
+    comparison, like `codec.tilepoints.keep_inside`) when `upper` (metres) is given."""
+    points, low, box = checked_points(points, patch, upper)
+    step = max(1, _BLOCK_POINTS // patch) * patch
+    blocks = [_block(points[start:start + step], start, patch, float(strength), copies, float(radius_m), low, box)
+              for start in range(0, len(points), step)]
+    return np.concatenate(blocks) if len(blocks) != 1 else blocks[0]
+
+
+def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: int, radius_m: float,
+           low: np.float32, box: np.ndarray) -> np.ndarray:
+    """`patch_planes` of whole patches whose first point is row `first` of the cloud (the disk samples' index)."""
+    n_patches = len(points) // patch
+    x, y, z = np.ascontiguousarray(points.T).reshape(3, n_patches, patch)
+    by_rank = np.ascontiguousarray(points.reshape(n_patches, patch, 3).transpose(1, 2, 0))  # (patch, 3, n_patches)
+    mean = _running_sum(by_rank) / patch
+    offsets = by_rank - mean
+    products = np.empty((patch, 6, n_patches))
+    for row, (first_axis, second_axis) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+        np.multiply(offsets[:, first_axis], offsets[:, second_axis], out=products[:, row])
+    nx, ny, nz = _smallest_eigenvectors(*_running_sum(products))
+    # tangents as `surface._tangents`: t1 = normalise(n x e), e the axis of n's smallest component; t2 = n x t1
+    ax, ay, az = np.abs(nx), np.abs(ny), np.abs(nz)
+    zero = np.zeros(n_patches)
+    x_smallest, y_smallest = (ax <= ay) & (ax <= az), ay <= az
+    fx = np.where(x_smallest, zero, np.where(y_smallest, -nz, ny))
+    fy = np.where(x_smallest, nz, np.where(y_smallest, zero, -nx))
+    fz = np.where(x_smallest, -ny, np.where(y_smallest, nx, zero))
+    length = np.sqrt(fx * fx + fy * fy + fz * fz)
+    fx, fy, fz = fx / length, fy / length, fz / length
+    sx, sy, sz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
+    dx, dy, dz = x - mean[0][:, None], y - mean[1][:, None], z - mean[2][:, None]
+    offset = dx * nx[:, None]
+    offset += dy * ny[:, None]
+    offset += dz * nz[:, None]
+    offset *= strength
+    out = np.empty((len(points), 1 + copies, 3), dtype=np.float32)
+    if copies:
+        product = np.arange(first * copies, (first + len(points)) * copies, dtype=np.float64) * GOLDEN_FRACTION
+        radius = radius_m * np.sqrt(product - np.floor(product))  # % 1.0 of these non-negative numbers, exactly
+        angle = np.arange(first * copies, (first + len(points)) * copies, dtype=np.float64) * GOLDEN_ANGLE
+        u = (radius * np.cos(angle)).reshape(n_patches, patch, copies)
+        v = (radius * np.sin(angle)).reshape(n_patches, patch, copies)
+    for axis, (column, normal, first_tangent, second_tangent) in enumerate(((x, nx, fx, sx), (y, ny, fy, sy),
+                                                                            (z, nz, fz, sz))):
+        moved = column - offset * normal[:, None]
+        out[:, 0, axis] = moved.ravel()
+        if copies:
+            along = u * first_tangent[:, None, None]
+            along += moved[..., None]
+            along += v * second_tangent[:, None, None]
+            out[:, 1:, axis] = along.reshape(-1, copies)
+    out = out.reshape(-1, 3)
+    inside = (out[:, 0] >= low) & (out[:, 0] <= box[0])
+    for axis in (1, 2):
+        inside &= (out[:, axis] >= low) & (out[:, axis] <= box[axis])
+    return out[inside]
+
+
+def _running_sum(values: np.ndarray) -> np.ndarray:
+    """The sum over the first axis added row by row from 0.0, as the kernel adds its points (numpy's sum adds
+    pairwise along a contiguous axis)."""
+    total = np.zeros(values.shape[1:])
+    for row in values:
+        total += row
+    return total
+
+
+def _smallest_eigenvectors(xx, yy, zz, xy, xz, yz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per patch, the kernel's `_smallest_eigenvector` of the symmetric 3 x 3 matrices of these (n,) entries:
+    (n,) x, y, z of the unit eigenvector of the smallest eigenvalue, its largest component positive; (0, 0, 1)
+    where the matrix is a multiple of the identity (or 0)."""
+    n = len(xx)
+    best_x, best_y, best_z, best = np.zeros(n), np.zeros(n), np.ones(n), np.zeros(n)
+    q = (xx + yy + zz) / 3.0
+    p2 = (xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2.0 * (xy * xy + xz * xz + yz * yz)
+    p = np.sqrt(p2 / 6.0)
+    spread = p > 0.0
+    if spread.any():
+        q, p = q[spread], p[spread]
+        xx, yy, zz, xy, xz, yz = (value[spread] for value in (xx, yy, zz, xy, xz, yz))
+        b00, b11, b22, b01, b02, b12 = (xx - q) / p, (yy - q) / p, (zz - q) / p, xy / p, xz / p, yz / p
+        r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
+        third = 2.0 * np.pi / 3.0  # numpy's arccos rounds differently from the C library's on some CPUs
+        cosine = np.array([math.cos(math.acos(min(1.0, max(-1.0, value))) / 3.0 + third) for value in r.tolist()])
+        smallest = q + 2.0 * p * cosine
+        a0, a1, a2 = xx - smallest, xy, xz
+        c0, c1, c2 = xy, yy - smallest, yz
+        e0, e1, e2 = xz, yz, zz - smallest
+        kept_x, kept_y, kept_z, kept = best_x[spread], best_y[spread], best_z[spread], best[spread]
+        for ux, uy, uz, vx, vy, vz in ((a0, a1, a2, c0, c1, c2), (a0, a1, a2, e0, e1, e2),
+                                       (c0, c1, c2, e0, e1, e2)):
+            nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+            norm = nx * nx + ny * ny + nz * nz
+            larger = norm > kept
+            kept_x, kept_y, kept_z = np.where(larger, nx, kept_x), np.where(larger, ny, kept_y), \
+                np.where(larger, nz, kept_z)
+            kept = np.where(larger, norm, kept)
+        unit = kept > 0.0
+        scale = 1.0 / np.sqrt(np.where(unit, kept, 1.0))
+        kept_x, kept_y, kept_z = (np.where(unit, value * scale, value) for value in (kept_x, kept_y, kept_z))
+        best_x[spread], best_y[spread], best_z[spread] = kept_x, kept_y, kept_z
+    largest = np.where(np.abs(best_y) > np.abs(best_x), best_y, best_x)
+    largest = np.where(np.abs(best_z) > np.abs(largest), best_z, largest)
+    flip = largest < 0.0
+    return np.where(flip, -best_x, best_x), np.where(flip, -best_y, best_y), np.where(flip, -best_z, best_z)
