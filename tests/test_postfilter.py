@@ -305,21 +305,22 @@ def test_the_second_extra_copy_must_gain_its_iou_margin(monkeypatch, ious, chose
     assert np.array_equal(cloud, expected)
 
 
-def test_decoding_workers_preload_the_patch_kernel_only_for_files_that_use_it(monkeypatch, e0_tile, filtered_and_paper):
-    from mapsqueeze.codec import decompress as decompress_module
-
+def test_decoding_a_patch_plane_file_loads_no_numba(tmp_path, e0_tile):
+    """The decoder runs the patch planes in numpy (`geometry.patchesnumpy`): neither a decompress nor the modules
+    its workers preload import numba (~120 MB a process)."""
     points, model = e0_tile
-    _, paper = filtered_and_paper
-    patched = mapsqueeze.compress(points, model=model, workers=1)
-    preloads = []
-    real = decompress_module.open_executor
-
-    def recording(workers, scheduler, context, n_jobs, preload=()):
-        preloads.append(tuple(preload))
-        return real(workers, scheduler, context, n_jobs, preload)
-
-    monkeypatch.setattr(decompress_module, "open_executor", recording)
-    for data in (paper, patched):
-        mapsqueeze.decompress(data, model=model, workers=1)
-    assert preloads == [decompress_module.WORKER_MODULES, decompress_module.PATCH_WORKER_MODULES]
-    assert "mapsqueeze.codec.patchworker" in decompress_module.PATCH_WORKER_MODULES
+    path = tmp_path / "patched.msq"
+    path.write_bytes(mapsqueeze.compress(points, model=model, workers=1))
+    reader, stream = open_container(path.read_bytes())
+    with stream:
+        assert any(entry.post_filter & PATCH for entry in reader.entries)
+    script = ("import sys, mapsqueeze\n"
+              "from mapsqueeze.codec.decompress import WORKER_MODULES\n"
+              "import importlib\n"
+              "[importlib.import_module(name) for name in WORKER_MODULES]\n"
+              "assert 'numba' not in sys.modules\n"
+              f"cloud = mapsqueeze.decompress(open({str(path)!r}, 'rb').read(), model='e0', workers=1)\n"
+              "print(len(cloud), 'numba' in sys.modules)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert result.stdout.split() == [str(len(mapsqueeze.decompress(path.read_bytes(), model=model, workers=1))),
+                                     "False"]
