@@ -15,6 +15,7 @@ import dataclasses
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from mapsqueeze.codec.modes import RateTarget
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.codec.octreetile import octree_leaf_m
 from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.io.atomic import remove_dead_work_dirs
+from mapsqueeze.io.ply import write_ply_stream
+from mapsqueeze.io.pointcloud import FLOAT32_SAFE_ABS_M
 from mapsqueeze.io import (
     PointCloud,
     atomic_write_bytes,
@@ -48,6 +52,9 @@ from mapsqueeze.io import (
 
 DEFAULT_MODEL = "e1"
 DEFAULT_PRECISION = "q"
+
+SPILL_PREFIX = "mapsqueeze-decoded-"
+"""Name prefix of decompress_file's spill folders (`io.work_dir`)."""
 
 SPILL_CHUNK_POINTS = 1 << 17
 """Points per chunk that decompress_file reads back from its spill files and writes (3 MB of coordinates; the
@@ -333,16 +340,31 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
     format: the output's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension).
     attributes=False writes the geometry only (and the metadata), without decoding the attribute streams.
 
-    Tiles are decoded one at a time into spill files (in spill_dir, default the system's temporary directory;
-    24 bytes a point plus the attributes), which are then written out chunk by chunk: memory stays bounded by a
-    tile and a chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`); workers / dask_scheduler as
-    in `compress` (one tile in memory per worker).
+    Tiles are decoded one at a time. A binary PLY without attributes is written as they arrive
+    (`io.ply.write_ply_stream`); other outputs go through spill files (in spill_dir, default the system's temporary
+    directory; 24 bytes a point plus the attributes), which are then written out chunk by chunk: memory stays
+    bounded by a tile and a chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`); workers /
+    dask_scheduler as in `compress` (one tile in memory per worker).
     """
-    format_name(output_path, format)  # an unknown output format or an unwritable path fails before any decoding
+    output_format = format_name(output_path, format)  # an unknown format or an unwritable path fails before decoding
     check_output_path(output_path)
-    schema = info(input_path).attribute_schema
+    summary = info(input_path)
+    schema = summary.attribute_schema
     specs = schema.specs if schema and attributes else ()
-    with work_dir("mapsqueeze-decoded-", spill_dir) as spill:
+    if output_format == "ply" and not specs:  # streamed: no spill file
+        remove_dead_work_dirs(SPILL_PREFIX, spill_dir)
+        def tiles() -> Iterator[np.ndarray]:
+            count = 0
+            for tile in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress, max_tile_points,
+                                            attributes=False, workers=workers, dask_scheduler=dask_scheduler):
+                count += len(tile)
+                yield tile.points
+            if not count:
+                raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
+
+        float32_certain = float(np.abs(summary.bounds).max()) + 1.0 < FLOAT32_SAFE_ABS_M
+        return write_ply_stream(Path(output_path), tiles(), float32_certain, lambda first: first * summary.n_tiles)
+    with work_dir(SPILL_PREFIX, spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
         streams = [open(os.path.join(spill, f"attribute{column}"), "wb") for column in range(len(specs))]
         try:

@@ -51,10 +51,17 @@ def _remove_dead_processes_leftovers(folder: Path, pattern: re.Pattern) -> None:
 
 def work_dir(prefix: str, dir: str | os.PathLike | None = None) -> tempfile.TemporaryDirectory:
     """A temporary folder `PREFIX<pid>-<random>` in `dir` (default: the system's temporary directory), removed
-    on exit; folders of the same prefix left by dead processes are removed first."""
+    on exit; folders of the same prefix left by dead processes are removed first (`remove_dead_work_dirs`)."""
+    parent = remove_dead_work_dirs(prefix, dir)
+    return tempfile.TemporaryDirectory(prefix=f"{prefix}{os.getpid()}-", dir=parent)
+
+
+def remove_dead_work_dirs(prefix: str, dir: str | os.PathLike | None = None) -> Path:
+    """Remove the `work_dir` folders of this prefix in `dir` (default: the system's temporary directory) whose
+    process is gone; returns that folder."""
     parent = Path(dir if dir is not None else tempfile.gettempdir())
     _remove_dead_processes_leftovers(parent, re.compile(re.escape(prefix) + r"(\d+)-[A-Za-z0-9_]+"))
-    return tempfile.TemporaryDirectory(prefix=f"{prefix}{os.getpid()}-", dir=parent)
+    return parent
 
 
 def check_output_path(path: str | os.PathLike) -> None:

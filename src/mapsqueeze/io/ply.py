@@ -5,7 +5,8 @@ that errs by more than FLOAT32_MAX_ERROR_M; every attribute as its own dtype (64
 when they fit, which PLY needs).
 """
 
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +14,8 @@ import plyfile
 
 from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
 from mapsqueeze.io.atomic import atomic_output
-from mapsqueeze.io.pointcloud import (FLOAT32_MAX_ERROR_M, ChunkSource, CloudStats, PointCloud, row_chunks,
-                                     validate_points)
+from mapsqueeze.io.pointcloud import (FLOAT32_MAX_ERROR_M, ChunkSource, CloudStats, PointCloud, float32_error_m,
+                                     row_chunks, validate_points)
 
 _PLY_INTEGER_TYPES = (np.int32, np.uint32)
 _PLY_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
@@ -82,11 +83,71 @@ def write_ply(path: Path, chunks: ChunkSource, stats: CloudStats, text: bool) ->
             vertices = np.concatenate([_vertices(chunk, dtype) for chunk in chunks()])
             plyfile.PlyData([plyfile.PlyElement.describe(vertices, "vertex")], text=True).write(str(temp))
         else:
-            header = ["ply", "format binary_little_endian 1.0", f"element vertex {stats.n_points}",
-                      *(f"property {_PLY_TYPE_NAMES[dtype[name].str[1:]]} {name}" for name in dtype.names),
-                      "end_header"]
             with open(temp, "wb") as stream:
-                stream.write(("\n".join(header) + "\n").encode("ascii"))
+                stream.write(_binary_header(stats.n_points, dtype))
                 for chunk in chunks():
                     stream.write(_vertices(chunk, dtype).view(np.uint8).data)
     return tuple(stats.dtypes)
+
+
+def _binary_header(n_points: int, dtype: np.dtype) -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0", f"element vertex {n_points}",
+             *(f"property {_PLY_TYPE_NAMES[dtype[name].str[1:]]} {name}" for name in dtype.names), "end_header"]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+MOVE_CHUNK_POINTS = 1 << 20
+"""Points per read and write when `write_ply_stream` moves or narrows its body (24 MB of float64)."""
+
+
+def write_ply_stream(path: Path, clouds: Iterable[np.ndarray], float32_certain: bool,
+                     estimate: Callable[[int], int]) -> int:
+    """Binary PLY of x, y, z only, written as the (n, 3) clouds arrive, without a spill file or a statistics pass:
+    the bytes `write_ply` writes for their concatenation; returns the point count. The points go after a header
+    sized for estimate(first cloud's count) points, moved once when the count has another number of digits. x, y, z
+    are float32 when `float32_certain` (the caller knows float32 errs by at most FLOAT32_MAX_ERROR_M), else float64,
+    narrowed to float32 at the end when every point allows it."""
+    code = "<f4" if float32_certain else "<f8"
+    n_points, error, start = 0, 0.0, None
+    with atomic_output(path) as temp, open(temp, "w+b") as stream:
+        for cloud in clouds:
+            points = validate_points(cloud, name=f"points for {path}")
+            if start is None:
+                start = len(_binary_header(estimate(len(points)), _xyz_dtype(code)))
+                stream.seek(start)
+            if not float32_certain:
+                error = max(error, float32_error_m(points))
+            stream.write(points.astype(code).data)
+            n_points += len(points)
+        if not n_points:
+            raise InvalidPointCloudError(f"points for {path}: the point cloud is empty")
+        final = "<f4" if error <= FLOAT32_MAX_ERROR_M else code
+        header = _binary_header(n_points, _xyz_dtype(final))
+        _move_rows(stream, start, code, len(header), final, 3 * n_points)
+        stream.seek(0)
+        stream.write(header)
+        stream.truncate(len(header) + 3 * n_points * np.dtype(final).itemsize)
+    return n_points
+
+
+def _xyz_dtype(code: str) -> np.dtype:
+    return np.dtype([(axis, code) for axis in ("x", "y", "z")])
+
+
+def _move_rows(stream, source: int, source_code: str, target: int, target_code: str, count: int) -> None:
+    """Move `count` values of dtype source_code at byte `source` of the file to byte `target` as target_code
+    (a value at most as wide): forwards when that writes behind the reads, else backwards (same width only)."""
+    if source == target and source_code == target_code:
+        return
+    width, target_width = np.dtype(source_code).itemsize, np.dtype(target_code).itemsize
+    step = 3 * MOVE_CHUNK_POINTS
+    forward = target <= source
+    if not forward and target_width != width:
+        raise ValueError("a body moves to a later offset only at its own width")
+    starts = range(0, count, step) if forward else reversed(range(0, count, step))
+    handle = stream.fileno()
+    stream.flush()
+    for first in starts:
+        size = min(step, count - first)
+        values = np.frombuffer(os.pread(handle, size * width, source + first * width), dtype=source_code)
+        os.pwrite(handle, values.astype(target_code).tobytes(), target + first * target_width)

@@ -13,6 +13,8 @@ from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M, validate_points
 FLOAT32_MAX_ERROR_M = 1e-3
 """Largest rounding error (metres) accepted when x, y, z are stored as float32; beyond it float64 is used
 (PLY, PCD) or the write is refused (KITTI/nuScenes .bin, which are float32 by definition)."""
+FLOAT32_SAFE_ABS_M = 2.0**15
+"""Coordinates of smaller magnitude (metres) round to float32 by at most 2^-10 m, within FLOAT32_MAX_ERROR_M."""
 
 _ATTRIBUTE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
 

@@ -1,0 +1,39 @@
+"""io.ply.write_ply_stream: the bytes of the binary PLY writer, whatever the estimate of the count and the
+coordinates' float32 rounding (the decoder writes its tiles with it, `api.decompress_file`)."""
+
+import numpy as np
+import pytest
+
+from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.io import ply, write_points
+from mapsqueeze.io.pointcloud import FLOAT32_SAFE_ABS_M
+
+
+def clouds(offset: float, sizes=(7, 1, 30, 4)) -> list[np.ndarray]:
+    rng = np.random.default_rng(len(sizes))
+    return [rng.uniform(-50, 50, (size, 3)) + offset for size in sizes]
+
+
+@pytest.mark.parametrize("offset", [0.0, 600_000.0, 2.0**20])  # float32; float64; float64 values float32 holds
+@pytest.mark.parametrize("estimate", [1, 10, 42, 1_000])  # fewer, as many and more digits than 42 points
+def test_streamed_ply_has_the_writers_bytes(tmp_path, monkeypatch, offset, estimate):
+    parts = clouds(offset)
+    if offset == 2.0**20:
+        parts = [np.round(part) for part in parts]  # whole metres: float32 errs by 0 m
+    write_points(tmp_path / "expected.ply", np.concatenate(parts))
+    monkeypatch.setattr(ply, "MOVE_CHUNK_POINTS", 5)  # moved in several chunks
+    certain = offset + 51 < FLOAT32_SAFE_ABS_M
+    count = ply.write_ply_stream(tmp_path / "streamed.ply", iter(parts), certain, lambda first: estimate)
+    assert count == 42
+    expected = (tmp_path / "expected.ply").read_bytes()
+    assert (tmp_path / "streamed.ply").read_bytes() == expected
+    assert (b"property float x" in expected) == (offset != 600_000.0)
+
+
+def test_an_empty_or_invalid_stream_leaves_no_file(tmp_path):
+    target = tmp_path / "out.ply"
+    with pytest.raises(InvalidPointCloudError, match="empty"):
+        ply.write_ply_stream(target, iter([]), True, lambda first: first)
+    with pytest.raises(InvalidPointCloudError, match="NaN"):
+        ply.write_ply_stream(target, iter([np.zeros((3, 3)), np.full((2, 3), np.nan)]), True, lambda first: first)
+    assert list(tmp_path.iterdir()) == []
