@@ -96,8 +96,8 @@ def _binary_header(n_points: int, dtype: np.dtype) -> bytes:
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
-MOVE_CHUNK_POINTS = 1 << 20
-"""Points per read and write when `write_ply_stream` moves or narrows its body (24 MB of float64)."""
+MOVE_CHUNK_POINTS = 1 << 16
+"""Points `write_ply_stream` checks for float32 at once, and moves or narrows at once (1.5 MB of float64)."""
 
 
 def write_ply_stream(path: Path, clouds: Iterable[np.ndarray], float32_certain: bool,
@@ -115,9 +115,10 @@ def write_ply_stream(path: Path, clouds: Iterable[np.ndarray], float32_certain: 
             if start is None:
                 start = len(_binary_header(estimate(len(points)), _xyz_dtype(code)))
                 stream.seek(start)
-            if not float32_certain:
-                error = max(error, float32_error_m(points))
-            stream.write(points.astype(code).data)
+            for first in range(0, len(points) if error <= FLOAT32_MAX_ERROR_M and not float32_certain else 0,
+                               MOVE_CHUNK_POINTS):  # until one point needs float64; temporaries of a chunk
+                error = max(error, float32_error_m(points[first:first + MOVE_CHUNK_POINTS]))
+            stream.write(np.ascontiguousarray(points, dtype=code).data)
             n_points += len(points)
         if not n_points:
             raise InvalidPointCloudError(f"points for {path}: the point cloud is empty")
