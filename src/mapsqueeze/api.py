@@ -359,6 +359,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                                             attributes=False, workers=workers, dask_scheduler=dask_scheduler):
                 count += len(tile)
                 yield tile.points
+                del tile  # released before the next tile arrives
             if not count:
                 raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
 

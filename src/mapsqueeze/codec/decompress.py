@@ -260,6 +260,7 @@ def iter_decoded_clouds(
                         world, values = world[inside], {name: v[inside] for name, v in values.items()}
                     if len(world):
                         yield PointCloud(world, values, metadata)
+                    del local, native, world, values  # released before the next tile arrives
                 if progress:
                     progress(done, len(selected))
         finally:

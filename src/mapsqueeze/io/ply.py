@@ -120,6 +120,7 @@ def write_ply_stream(path: Path, clouds: Iterable[np.ndarray], float32_certain: 
                 error = max(error, float32_error_m(points[first:first + MOVE_CHUNK_POINTS]))
             stream.write(np.ascontiguousarray(points, dtype=code).data)
             n_points += len(points)
+            del cloud, points  # released before the next cloud arrives
         if not n_points:
             raise InvalidPointCloudError(f"points for {path}: the point cloud is empty")
         final = "<f4" if error <= FLOAT32_MAX_ERROR_M else code
