@@ -171,3 +171,16 @@ def test_bounding_box_matches_the_axis_reduction(dtype):
     np.testing.assert_array_equal(low, points[::2].min(axis=0))
     np.testing.assert_array_equal(high, points[::2].max(axis=0))
     assert low.dtype == dtype
+
+
+def test_select_rows_is_boolean_indexing():
+    from mapsqueeze.geometry.rows import select_rows
+
+    rng = np.random.default_rng(5)
+    for dtype in (np.float32, np.float64):
+        points = rng.normal(size=(1000, 3)).astype(dtype)
+        for mask in (rng.random(1000) < 0.7, np.zeros(1000, dtype=bool), np.ones(1000, dtype=bool)):
+            for array in (points, points[:, [2, 0, 1]], np.asfortranarray(points)):
+                chosen = select_rows(array, mask)
+                assert chosen.dtype == dtype and chosen.shape == (mask.sum(), 3)
+                assert np.array_equal(chosen, array[mask])

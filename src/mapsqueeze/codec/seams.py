@@ -24,6 +24,7 @@ import numpy as np
 
 from mapsqueeze.codec.container import TileCoding, TileEntry
 from mapsqueeze.geometry.morton import morton_rank
+from mapsqueeze.geometry.rows import select_rows
 
 NEAR_BAND_M = 0.15
 """Depth (metres) of the band inside a face whose density is limited: the pile-up reaches 10-12 cm at e0."""
@@ -79,7 +80,7 @@ def thin_at_faces(cloud: np.ndarray, faces: tuple[InternalFace, ...]) -> np.ndar
         depth = np.abs(cloud[:, face.axis].astype(np.float64) - face.plane_m)
         banded = np.flatnonzero(keep & (depth < NEAR_BAND_M + BEHIND_BAND_M))  # the near and behind bands
         keep[banded[_excess(cloud[banded], depth[banded], face.axis)]] = False
-    return cloud[keep]
+    return select_rows(cloud, keep)
 
 
 def _excess(points: np.ndarray, depth: np.ndarray, axis: int) -> np.ndarray:

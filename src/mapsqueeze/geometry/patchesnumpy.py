@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from mapsqueeze.geometry.rows import select_rows
 from mapsqueeze.geometry.surface import GOLDEN_ANGLE, GOLDEN_FRACTION
 
 _BLOCK_POINTS = 1 << 16
@@ -91,7 +92,7 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
     inside = (out[:, 0] >= low) & (out[:, 0] <= box[0])
     for axis in (1, 2):
         inside &= (out[:, axis] >= low) & (out[:, axis] <= box[axis])
-    return out[inside]
+    return select_rows(out, inside)
 
 
 def _running_sum(values: np.ndarray) -> np.ndarray:
