@@ -255,12 +255,13 @@ def iter_decoded_clouds(
                         values = _tile_attributes(reader, position, local, native,
                                                   count is None and not faces[position])
                     world = tile_frame(header, reader.entries[position]) + local
+                    del local, native  # a tile's arrays are released as soon as they are used
                     if box is not None:
                         inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
                         world, values = world[inside], {name: v[inside] for name, v in values.items()}
                     if len(world):
                         yield PointCloud(world, values, metadata)
-                    del local, native, world, values  # released before the next tile arrives
+                    del world, values
                 if progress:
                     progress(done, len(selected))
         finally:

@@ -13,7 +13,7 @@ import numpy as np
 from mapsqueeze.geometry.rows import select_rows
 from mapsqueeze.geometry.surface import GOLDEN_ANGLE, GOLDEN_FRACTION
 
-_BLOCK_POINTS = 1 << 16
+_BLOCK_POINTS = 1 << 15
 """Points reworked at once (whole patches; bounds the float64 temporaries to a few MB)."""
 
 
