@@ -22,7 +22,7 @@ from mapsqueeze.codec.container import (
     frame_origin,
     open_container,
 )
-from mapsqueeze.codec.executor import ProgressCallback, open_executor
+from mapsqueeze.codec.executor import ProgressCallback, open_executor, start_pool_server
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.postfilter import PostFilter, decode_patch_choices, split_patch_choices
 from mapsqueeze.codec.rawtile import decode_raw_tile
@@ -230,6 +230,7 @@ def iter_decoded_clouds(
         box = None if bbox is None else parse_bbox(bbox)
         selected = [position for position, entry in enumerate(reader.entries)
                     if box is None or _intersects(tile_world_bounds(header, entry), box)]
+        start_pool_server(workers, dask_scheduler, len(selected), WORKER_MODULES)  # imports while the model loads
         counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points, max_tile_points)
         if any(reader.entries[p].coding is TileCoding.network for p in selected):
             model = _load_matching_model(model, header, reader.name)
