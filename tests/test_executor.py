@@ -200,4 +200,4 @@ def test_decompress_starts_the_pool_server_before_it_loads_the_model(model, seri
                         lambda workers, scheduler, jobs, preload: events.append(("server", workers, jobs, preload)))
     assert np.array_equal(mapsqueeze.decompress(serial[0], model=model, workers=3), serial[1])
     n_tiles = mapsqueeze.info(serial[0]).n_tiles
-    assert events[:2] == [("server", 3, n_tiles, decompress_module.WORKER_MODULES), "model"]
+    assert events[0] == ("server", 3, n_tiles, decompress_module.WORKER_MODULES)  # first, whatever the codings
