@@ -190,14 +190,14 @@ def test_the_pool_server_starts_before_the_map_is_tiled_and_only_for_a_pool(map_
     assert events[:2] == [("server", 1), ("tiling", None)]
 
 
-def test_decompress_starts_the_pool_server_before_it_loads_the_model(model, serial, monkeypatch):
+def test_decompress_starts_the_pool_server_before_anything_else(model, serial, monkeypatch):
     from mapsqueeze.codec import decompress as decompress_module
 
     events = []
-    load = decompress_module._load_matching_model
-    monkeypatch.setattr(decompress_module, "_load_matching_model", lambda *args: events.append("model") or load(*args))
     monkeypatch.setattr(decompress_module, "start_pool_server",
                         lambda workers, scheduler, jobs, preload: events.append(("server", workers, jobs, preload)))
+    monkeypatch.setattr(decompress_module, "target_counts",
+                        lambda *args, real=decompress_module.target_counts: events.append("counts") or real(*args))
     assert np.array_equal(mapsqueeze.decompress(serial[0], model=model, workers=3), serial[1])
     n_tiles = mapsqueeze.info(serial[0]).n_tiles
-    assert events[0] == ("server", 3, n_tiles, decompress_module.WORKER_MODULES)  # first, whatever the codings
+    assert events == [("server", 3, n_tiles, decompress_module.WORKER_MODULES), "counts"]
