@@ -69,3 +69,28 @@ def test_blocks_of_patches_number_the_disk_samples_across_the_cloud(monkeypatch)
 def test_points_that_are_not_whole_patches_are_refused():
     with pytest.raises(ValueError, match="patches"):
         patchesnumpy.patch_planes(np.zeros((10, 3)), 4, PATCH_STRENGTH, 1, PATCH_RADIUS_M)
+    assert patchesnumpy.patch_planes(np.zeros((0, 3)), 4, PATCH_STRENGTH, 1, PATCH_RADIUS_M).shape == (0, 3)
+
+
+def test_chosen_options_give_the_bytes_of_the_compiled_kernel_patch_by_patch(kitti_submap):
+    """Patch choices (`postfilter.apply_patch_choices`): every option of PATCH_OPTIONS on the patches of a real e1
+    decoded tile, each patch alone with its disk samples numbered from its first point, cropped and whole."""
+    from mapsqueeze.codec.postfilter import PATCH_OPTIONS
+
+    model = load_model("e1")
+    points = read_points(kitti_submap)
+    local = points - points.min(axis=0)
+    local = local[(local < np.asarray(model.config.tile_size)).all(axis=1)]
+    embedding = model.encode(local)
+    decoded = model.decode(embedding.points, embedding.features)
+    patch = int(np.prod(model.config.upsampling_factors))
+    choices = np.random.default_rng(6).integers(0, len(PATCH_OPTIONS), len(decoded) // patch)
+    for upper in (local.max(axis=0), None):
+        expected = np.concatenate([patches.patch_planes(decoded[i * patch:(i + 1) * patch], patch,
+                                                        *PATCH_OPTIONS[option], upper)
+                                   for i, option in enumerate(choices)])
+        chosen = patchesnumpy.patch_planes_chosen(decoded, patch, PATCH_OPTIONS, choices, upper)
+        assert chosen.dtype == np.float32 and chosen.tobytes() == expected.tobytes()
+    assert len(patchesnumpy.patch_planes_chosen(np.zeros((0, 3)), patch, PATCH_OPTIONS, [])) == 0
+    with pytest.raises(ValueError, match="choices"):
+        patchesnumpy.patch_planes_chosen(decoded, patch, PATCH_OPTIONS, choices[1:])

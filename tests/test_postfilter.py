@@ -313,7 +313,7 @@ def test_decoding_a_patch_plane_file_loads_no_numba(tmp_path, e0_tile):
     path.write_bytes(mapsqueeze.compress(points, model=model, workers=1))
     reader, stream = open_container(path.read_bytes())
     with stream:
-        assert any(entry.post_filter & PATCH for entry in reader.entries)
+        assert any(PostFilter.parse(entry.post_filter).patch_levels for entry in reader.entries)
     script = ("import sys, mapsqueeze\n"
               "from mapsqueeze.codec.decompress import WORKER_MODULES\n"
               "import importlib\n"

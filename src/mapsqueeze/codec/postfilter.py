@@ -241,8 +241,8 @@ def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain
 def _reworked(points: np.ndarray, option: int, extent_m: np.ndarray | None) -> np.ndarray:
     """One decoder patch's (P, 3) points under PATCH_OPTIONS[option] (`patches.patch_planes` on the patch alone,
     so its disk samples do not depend on the other patches' options), those inside [0, extent_m] (all when None);
-    float32."""
-    from mapsqueeze.geometry.patches import patch_planes  # numba: loaded only where a tile has patch planes
+    float32. The encoder's search runs it in the compiled kernel (numba is loaded there anyway)."""
+    from mapsqueeze.geometry.patches import patch_planes
 
     strength, copies, radius = PATCH_OPTIONS[option]
     return patch_planes(points, len(points), strength, copies, radius, extent_m)
@@ -253,13 +253,15 @@ def apply_patch_choices(decoded: np.ndarray, choices: np.ndarray, upsampling_fac
     """The tile's decoded points under patch choices: patch i (the points embedding point i spawned, consecutive
     rows) of the network's whole (uncropped, in decoder order) (K, 3) output reworked by PATCH_OPTIONS[choices[i]],
     cropped to the tile's box [0, extent_m] (all of them clamped into it when none is inside); float32 metres,
-    patch after patch."""
+    patch after patch. Runs numpy (`geometry.patchesnumpy.patch_planes_chosen`: the bytes of `_reworked` patch by
+    patch, the patches of one option at once), so that decoding loads no numba."""
+    from mapsqueeze.geometry.patchesnumpy import patch_planes_chosen
+
     patch = int(np.prod(upsampling_factors, dtype=np.int64))
     if len(decoded) != patch * len(choices):
         raise ValueError(f"{len(choices)} patch choices for {len(decoded)} points in patches of {patch}")
     for box in (extent_m, None):
-        parts = [_reworked(decoded[i * patch:(i + 1) * patch], int(option), box) for i, option in enumerate(choices)]
-        cloud = np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
+        cloud = patch_planes_chosen(decoded, patch, PATCH_OPTIONS, choices, box)
         if box is not None and (len(cloud) or not len(decoded)):
             return cloud
     return np.clip(cloud, np.float32(0), np.asarray(extent_m).astype(np.float32))

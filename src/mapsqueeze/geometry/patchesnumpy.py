@@ -40,14 +40,43 @@ def patch_planes(points: np.ndarray, patch: int, strength: float, copies: int, r
     comparison, like `codec.tilepoints.keep_inside`) when `upper` (metres) is given."""
     points, low, box = checked_points(points, patch, upper)
     step = max(1, _BLOCK_POINTS // patch) * patch
-    blocks = [_block(points[start:start + step], start, patch, float(strength), copies, float(radius_m), low, box)
-              for start in range(0, len(points), step)]
-    return np.concatenate(blocks) if len(blocks) != 1 else blocks[0]
+    blocks = [select_rows(*_block(points[start:start + step], start, patch, float(strength), copies, float(radius_m),
+                                  low, box)) for start in range(0, len(points), step)]
+    return blocks[0] if len(blocks) == 1 else np.concatenate(blocks or [np.zeros((0, 3), dtype=np.float32)])
+
+
+def patch_planes_chosen(points: np.ndarray, patch: int, options, choices: np.ndarray,
+                        upper: np.ndarray | None = None) -> np.ndarray:
+    """`patch_planes` of each patch alone (its disk samples numbered from its first point) with its own
+    (strength, copies, radius_m) = options[choices[i]], the patches' points concatenated in patch order: the
+    bytes of calling `patches.patch_planes` patch by patch, with the patches of one option reworked at once."""
+    points, low, box = checked_points(points, patch, upper)
+    n_patches = len(points) // patch
+    choices = np.asarray(choices)
+    if len(choices) != n_patches:
+        raise ValueError(f"{len(choices)} choices for {n_patches} patches")
+    grouped = points.reshape(n_patches, patch, 3)
+    pieces: list = [None] * n_patches
+    step = max(1, _BLOCK_POINTS // patch)
+    for option in np.unique(choices).tolist():
+        strength, copies, radius_m = options[option]
+        members = np.flatnonzero(choices == option)
+        for first in range(0, len(members), step):
+            chosen = members[first:first + step]
+            out, inside = _block(grouped[chosen].reshape(-1, 3), 0, patch, float(strength), copies, float(radius_m),
+                                 low, box, per_patch=True)
+            kept = select_rows(out, inside)
+            ends = np.cumsum(inside.reshape(len(chosen), -1).sum(axis=1)).tolist()
+            for index, start, end in zip(chosen.tolist(), [0] + ends[:-1], ends):
+                pieces[index] = kept[start:end]
+    return np.concatenate(pieces) if pieces else np.zeros((0, 3), dtype=np.float32)
 
 
 def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: int, radius_m: float,
-           low: np.float32, box: np.ndarray) -> np.ndarray:
-    """`patch_planes` of whole patches whose first point is row `first` of the cloud (the disk samples' index)."""
+           low: np.float32, box: np.ndarray, per_patch: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """`patch_planes` of whole patches whose first point is row `first` of the cloud (the disk samples' index;
+    per_patch: numbered from each patch's first point instead), before the crop: the (K (1 + copies), 3) float32
+    points and the mask of those inside the box."""
     n_patches = len(points) // patch
     x, y, z = np.ascontiguousarray(points.T).reshape(3, n_patches, patch)
     by_rank = np.ascontiguousarray(points.reshape(n_patches, patch, 3).transpose(1, 2, 0))  # (patch, 3, n_patches)
@@ -74,11 +103,13 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
     offset *= strength
     out = np.empty((len(points), 1 + copies, 3), dtype=np.float32)
     if copies:
-        product = np.arange(first * copies, (first + len(points)) * copies, dtype=np.float64) * GOLDEN_FRACTION
+        sample = np.arange(0 if per_patch else first * copies,
+                           (patch if per_patch else first + len(points)) * copies, dtype=np.float64)
+        product = sample * GOLDEN_FRACTION
         radius = radius_m * np.sqrt(product - np.floor(product))  # % 1.0 of these non-negative numbers, exactly
-        angle = np.arange(first * copies, (first + len(points)) * copies, dtype=np.float64) * GOLDEN_ANGLE
-        u = (radius * np.cos(angle)).reshape(n_patches, patch, copies)
-        v = (radius * np.sin(angle)).reshape(n_patches, patch, copies)
+        angle = sample * GOLDEN_ANGLE
+        u = (radius * np.cos(angle)).reshape(-1, patch, copies)  # (1, patch, copies) per patch: the same samples
+        v = (radius * np.sin(angle)).reshape(-1, patch, copies)
     for axis, (column, normal, first_tangent, second_tangent) in enumerate(((x, nx, fx, sx), (y, ny, fy, sy),
                                                                             (z, nz, fz, sz))):
         moved = column - offset * normal[:, None]
@@ -92,7 +123,7 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
     inside = (out[:, 0] >= low) & (out[:, 0] <= box[0])
     for axis in (1, 2):
         inside &= (out[:, axis] >= low) & (out[:, axis] <= box[axis])
-    return select_rows(out, inside)
+    return out, inside
 
 
 def _running_sum(values: np.ndarray) -> np.ndarray:
