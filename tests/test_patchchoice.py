@@ -26,6 +26,7 @@ from mapsqueeze.codec.postfilter import (
 from mapsqueeze.codec.tilepoints import keep_inside
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.occupancy import patch_option_ious
+from mapsqueeze.geometry.patches import patch_options, patch_planes
 from mapsqueeze.metrics import IOU_VOXEL_M, iou
 from mapsqueeze.model import load_model
 
@@ -60,12 +61,35 @@ def test_per_patch_choices_beat_every_single_setting_and_the_search_reports_the_
     assert chosen > max(singles) + 0.02
     assert set(choices[0::2]) != set(choices[1::2])  # the exact and the thick patches get different options
     start = np.zeros(len(choices), dtype=np.int64)
-    options = [[apply_patch_choices(decoded[i * 256:(i + 1) * 256], [option], FACTORS, EXTENT)
-                for i in range(len(choices))] for option in range(len(PATCH_OPTIONS))]
-    found, before, after = patch_option_ious(original, options, start, FRAME, IOU_VOXEL_M, 3)
+    options = [apply_patch_choices(decoded[i * 256:(i + 1) * 256], [option], FACTORS, EXTENT)
+               for option in range(len(PATCH_OPTIONS)) for i in range(len(choices))]
+    ends = np.cumsum([len(cloud) for cloud in options])
+    found, before, after = patch_option_ious(original, np.concatenate(options), ends, start, FRAME, IOU_VOXEL_M, 3)
     assert np.array_equal(found, choices)
     assert before == pytest.approx(iou(original, keep_inside(decoded, EXTENT).astype(np.float64) + FRAME), abs=1e-12)
     assert after == pytest.approx(chosen, abs=1e-12)
+
+
+def test_patch_options_give_the_bytes_of_each_patch_reworked_alone():
+    """One call for every option and patch: the points of `patch_planes` on each patch alone (disk samples numbered
+    from the patch's first point, not the cloud's), cropped or not, a flat and a single-point patch included."""
+    _, decoded = mixed_patches()
+    decoded = decoded[:256 * 12].copy()
+    decoded[256 * 3:256 * 4] = decoded[256 * 3]  # every point of patch 3 the same: no plane
+    decoded[256 * 5:256 * 6, 2] = 1.0  # patch 5 flat
+    decoded[256 * 7:256 * 8, 0] -= 0.3  # patch 7 partly outside the box
+    n = len(decoded) // 256
+    for upper in (EXTENT, None):
+        points, ends = patch_options(decoded, 256, PATCH_OPTIONS, upper)
+        assert len(ends) == len(PATCH_OPTIONS) * n
+        expected = [patch_planes(decoded[i * 256:(i + 1) * 256], 256, *option, upper)
+                    for option in PATCH_OPTIONS for i in range(n)]
+        assert np.array_equal(ends, np.cumsum([len(cloud) for cloud in expected]))
+        assert np.array_equal(points[:ends[-1]], np.concatenate(expected))
+    cropped = patch_options(decoded, 256, PATCH_OPTIONS, EXTENT)[1]
+    assert cropped[-1] < ends[-1]  # the box cropped patch 7
+    whole = patch_planes(decoded, 256, *PATCH_OPTIONS[4])  # one call over the cloud numbers its samples across it
+    assert not np.array_equal(whole[512 * 1:512 * 2], expected[4 * n + 1])
 
 
 def test_choices_are_left_off_where_they_do_not_pay():

@@ -238,23 +238,14 @@ def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain
     return settings[best], clouds[best]
 
 
-def _reworked(points: np.ndarray, option: int, extent_m: np.ndarray | None) -> np.ndarray:
-    """One decoder patch's (P, 3) points under PATCH_OPTIONS[option] (`patches.patch_planes` on the patch alone,
-    so its disk samples do not depend on the other patches' options), those inside [0, extent_m] (all when None);
-    float32. The encoder's search runs it in the compiled kernel (numba is loaded there anyway)."""
-    from mapsqueeze.geometry.patches import patch_planes
-
-    strength, copies, radius = PATCH_OPTIONS[option]
-    return patch_planes(points, len(points), strength, copies, radius, extent_m)
-
-
 def apply_patch_choices(decoded: np.ndarray, choices: np.ndarray, upsampling_factors, extent_m: np.ndarray
                         ) -> np.ndarray:
     """The tile's decoded points under patch choices: patch i (the points embedding point i spawned, consecutive
     rows) of the network's whole (uncropped, in decoder order) (K, 3) output reworked by PATCH_OPTIONS[choices[i]],
     cropped to the tile's box [0, extent_m] (all of them clamped into it when none is inside); float32 metres,
-    patch after patch. Runs numpy (`geometry.patchesnumpy.patch_planes_chosen`: the bytes of `_reworked` patch by
-    patch, the patches of one option at once), so that decoding loads no numba."""
+    patch after patch. Runs numpy (`geometry.patchesnumpy.patch_planes_chosen`: the bytes of `patches.patch_planes`
+    on each patch alone, so that its disk samples do not depend on the other patches' options; the patches of one
+    option at once), so that decoding loads no numba."""
     from mapsqueeze.geometry.patchesnumpy import patch_planes_chosen
 
     patch = int(np.prod(upsampling_factors, dtype=np.int64))
@@ -332,12 +323,12 @@ def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
     original_world: the tile's (N, 3) points in world metres; uncropped: the network's whole (K, 3) output for the
     embedding the decoder sees, in its order, tile-local metres relative to the world point `frame_m`."""
     from mapsqueeze.geometry.occupancy import patch_option_ious  # numba: loaded only where choices are searched
+    from mapsqueeze.geometry.patches import patch_options
 
     patch = int(np.prod(upsampling_factors, dtype=np.int64))  # the points of one embedding point
-    options = [[_reworked(uncropped[start:start + patch], option, extent_m) for start in range(0, len(uncropped), patch)]
-               for option in range(len(PATCH_OPTIONS))]
+    points, ends = patch_options(uncropped, patch, PATCH_OPTIONS, extent_m)
     start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)
-    found = patch_option_ious(original_world, options, start, frame_m, IOU_VOXEL_M, PATCH_CHOICE_SWEEPS)
+    found = patch_option_ious(original_world, points, ends, start, frame_m, IOU_VOXEL_M, PATCH_CHOICE_SWEEPS)
     if found is None:
         return None
     choices, before, after = found

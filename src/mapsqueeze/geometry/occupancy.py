@@ -56,55 +56,64 @@ def _mark_voxels(points, frame, voxel, low, shape, bit, grid):
         grid[(x * shape[1] + y) * shape[2] + z] |= bit
 
 
-def patch_option_ious(original: np.ndarray, options: list[list[np.ndarray]], start: np.ndarray, frame_m: np.ndarray,
-                      voxel_m: tuple[float, float, float], sweeps: int
+def patch_option_ious(original: np.ndarray, points: np.ndarray, ends: np.ndarray, start: np.ndarray,
+                      frame_m: np.ndarray, voxel_m: tuple[float, float, float], sweeps: int
                       ) -> tuple[np.ndarray, float, float] | None:
     """(choice per patch, IoU of `start`, IoU of the choices) of a greedy search for the option of each patch that
     maximises the occupancy-grid IoU (as `metrics.iou`) of the union of the patches' points with `original`.
 
-    original: (N, 3) world metres; options[k][i]: patch i's float32 tile-local points under option k (relative to
-    the world point frame_m); start: (n,) the first choice of each patch. Each sweep visits the patches in order
-    and gives each the option (ties: its current one, then the lowest) that maximises the IoU with every other
-    patch as chosen; it stops after `sweeps` sweeps or one that changes nothing. None when the voxel box holds
-    more than _MAX_OCCUPANCY_VOXELS voxels."""
+    original: (N, 3) world metres; points: float32 tile-local points (relative to the world point frame_m) of
+    every patch under every option, option after option, patch after patch within (`patches.patch_options`);
+    ends[k n + i]: the row after patch i's points under option k; start: (n,) the first choice of each patch.
+    Each sweep visits the patches in order and gives each the option (ties: its current one, then the lowest) that
+    maximises the IoU with every other patch as chosen; it stops after `sweeps` sweeps or one that changes nothing.
+    None when the voxel box holds more than _MAX_OCCUPANCY_VOXELS voxels."""
     frame_m = np.asarray(frame_m, dtype=np.float64)
     voxel = np.asarray(voxel_m, dtype=np.float64)
     corners = list(bounding_box(original))
-    corners += [corner.astype(np.float64) + frame_m for patches in options for cloud in patches if len(cloud)
-                for corner in bounding_box(cloud)]
+    if len(points):
+        corners += [corner.astype(np.float64) + frame_m for corner in bounding_box(points)]
     low = np.floor(np.min(corners, axis=0) / voxel).astype(np.int64)
     shape = np.floor(np.max(corners, axis=0) / voxel).astype(np.int64) - low + 1
     if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:
         return None
     grid = np.zeros(int(np.prod(shape)), dtype=np.uint8)
     _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
-    counts = np.array([[len(cloud) for cloud in patches] for patches in options], dtype=np.int64)
-    offsets = np.zeros(counts.size + 1, dtype=np.int64)
-    np.cumsum(counts.ravel(), out=offsets[1:])
-    points = np.concatenate([cloud for patches in options for cloud in patches]) if offsets[-1] else \
-        np.zeros((0, 3), np.float32)
-    cells = np.empty(len(points), dtype=np.int64)
-    _voxel_cells(np.ascontiguousarray(points), frame_m, voxel, low, shape, cells)
+    cells = np.empty(ends[-1] if len(ends) else 0, dtype=np.int32)  # _MAX_OCCUPANCY_VOXELS < 2^31
+    offsets = np.zeros(len(ends) + 1, dtype=np.int64)
+    _voxel_cells(points, ends, frame_m, voxel, low, shape, np.full(len(grid), -1, dtype=np.int32), cells, offsets)
     choice = np.array(start, dtype=np.int64)
-    before, after = _greedy_choices(grid, cells, offsets, len(options), len(choice), choice, sweeps)
+    n_options = len(ends) // len(choice) if len(choice) else 0
+    before, after = _greedy_choices(grid, cells, offsets, n_options, len(choice), choice, sweeps)
     return choice, before, after
 
 
 @compiled
-def _voxel_cells(points, frame, voxel, low, shape, cells):
-    """The grid cell of each point's IoU voxel (as `_mark_voxels`)."""
-    for i in range(points.shape[0]):
-        x = np.int64(np.floor((np.float64(points[i, 0]) + frame[0]) / voxel[0])) - low[0]
-        y = np.int64(np.floor((np.float64(points[i, 1]) + frame[1]) / voxel[1])) - low[1]
-        z = np.int64(np.floor((np.float64(points[i, 2]) + frame[2]) / voxel[2])) - low[2]
-        cells[i] = (x * shape[1] + y) * shape[2] + z
+def _voxel_cells(points, ends, frame, voxel, low, shape, seen, cells, offsets):
+    """The distinct grid cells of each patch's IoU voxels (as `_mark_voxels`) under each option: list l (option
+    k, patch i: l = k n + i) holds points[ends[l - 1]:ends[l]] (from 0 for l = 0), its cells written to
+    cells[offsets[l]:offsets[l + 1]]. seen: -1 per grid cell (a work array)."""
+    n = 0
+    begin = 0
+    for entry in range(ends.shape[0]):
+        for i in range(begin, ends[entry]):
+            x = np.int64(np.floor((np.float64(points[i, 0]) + frame[0]) / voxel[0])) - low[0]
+            y = np.int64(np.floor((np.float64(points[i, 1]) + frame[1]) / voxel[1])) - low[1]
+            z = np.int64(np.floor((np.float64(points[i, 2]) + frame[2]) / voxel[2])) - low[2]
+            cell = (x * shape[1] + y) * shape[2] + z
+            if seen[cell] != entry:
+                seen[cell] = entry
+                cells[n] = cell
+                n += 1
+        begin = ends[entry]
+        offsets[entry + 1] = n
 
 
 @compiled
 def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, sweeps):
-    """Greedy search of `patch_option_ious` on cell lists: patch i's cells under option k are
+    """Greedy search of `patch_option_ious` on cell lists: patch i's distinct cells under option k are
     cells[offsets[k n + i]:offsets[k n + i + 1]]; `choice` updated in place; (IoU before, IoU after)."""
-    occupied = np.zeros(original.shape[0], dtype=np.int32)  # decoded points per cell
+    occupied = np.zeros(original.shape[0], dtype=np.int32)  # chosen patches per cell
     stamp = np.full(original.shape[0], -1, dtype=np.int64)
     n_original = 0
     for cell in range(original.shape[0]):

@@ -14,11 +14,33 @@ from mapsqueeze.geometry.surface import GOLDEN_ANGLE, GOLDEN_FRACTION
 def patch_planes(points: np.ndarray, patch: int, strength: float, copies: int, radius_m: float,
                  upper: np.ndarray | None = None) -> np.ndarray:
     """`geometry.patchesnumpy.patch_planes` (same arguments and result) in the compiled kernel."""
+    out, ends = _rework(points, patch, ((strength, copies, radius_m),), False, upper)
+    return out[:ends[-1] if len(ends) else 0]
+
+
+def patch_options(points: np.ndarray, patch: int, options, upper: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Every patch of a decoded (K, 3) cloud (rows [i patch, (i + 1) patch)) reworked alone under each of `options`
+    ((strength, copies, radius_m) as `patch_planes`): the bytes of `patch_planes` called on each patch alone (its
+    disk samples numbered from its first point), its plane fitted once. Returns (float32 points, option after
+    option and within an option patch after patch; ends: (len(options) n_patches,) int64, the row after patch i
+    under option k at [k n_patches + i]); only the points inside [0, upper] when `upper` (metres) is given."""
+    return _rework(points, patch, options, True, upper)
+
+
+def _rework(points: np.ndarray, patch: int, options, per_patch: bool, upper: np.ndarray | None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """(float32 points, ends) of `patch_options`; disk samples numbered from each patch's first point when
+    per_patch, else from the cloud's."""
     points, low, box = checked_points(points, patch, upper)
-    out = np.empty((len(points) * (1 + copies), 3), dtype=np.float32)
-    kept = _patch_planes_kernel(points, patch, float(strength), copies, float(radius_m), low, box, GOLDEN_ANGLE,
-                                GOLDEN_FRACTION, out)
-    return out[:kept]
+    strengths = np.array([option[0] for option in options], dtype=np.float64)
+    copies = np.array([option[1] for option in options], dtype=np.int64)
+    radii = np.array([option[2] for option in options], dtype=np.float64)
+    out = np.empty((len(points) * int(np.sum(1 + copies)), 3), dtype=np.float32)
+    ends = np.empty(len(options) * (len(points) // patch), dtype=np.int64)
+    _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, GOLDEN_ANGLE,
+                         GOLDEN_FRACTION, out, ends)
+    return out, ends
 
 
 @compiled
@@ -66,9 +88,15 @@ def _store_inside(out, kept, x, y, z, low, box):
 
 
 @compiled
-def _patch_planes_kernel(points, patch, strength, copies, radius_m, low, box, golden_angle, golden_fraction, out):
-    kept = 0
-    for start in range(0, points.shape[0], patch):
+def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, golden_angle, golden_fraction,
+                         out, ends):
+    """`_rework`'s kernel: each patch's plane (centroid, normal, tangents) fitted once, then the patches reworked
+    option after option; ends[k n_patches + i]: the row after patch i under option k. Per patch, every patch has
+    the same disk samples: those of its first patch are kept and reused (no sine or cosine for the others)."""
+    n_patches = points.shape[0] // patch
+    planes = np.empty((n_patches, 12))
+    for index in range(n_patches):
+        start = index * patch
         mx = my = mz = 0.0
         for i in range(start, start + patch):
             mx += points[i, 0]
@@ -96,15 +124,35 @@ def _patch_planes_kernel(points, patch, strength, copies, radius_m, low, box, go
         length = np.sqrt(fx * fx + fy * fy + fz * fz)
         fx, fy, fz = fx / length, fy / length, fz / length
         sx, sy, sz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
-        for i in range(start, start + patch):
-            offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
-            px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
-            kept = _store_inside(out, kept, px, py, pz, low, box)
-            for j in range(copies):
-                sample = i * copies + j
-                radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
-                angle = sample * golden_angle
-                u, v = radius * np.cos(angle), radius * np.sin(angle)
-                kept = _store_inside(out, kept, px + u * fx + v * sx, py + u * fy + v * sy, pz + u * fz + v * sz,
-                                    low, box)
+        plane = planes[index]
+        plane[0], plane[1], plane[2], plane[3], plane[4], plane[5] = mx, my, mz, nx, ny, nz
+        plane[6], plane[7], plane[8], plane[9], plane[10], plane[11] = fx, fy, fz, sx, sy, sz
+    disk = np.empty((patch * max(copies.max(), 0) if per_patch else 0, 2))  # per patch: every patch's samples
+    kept = 0
+    for option in range(strengths.shape[0]):
+        strength, n_copies, radius_m = strengths[option], copies[option], radii[option]
+        for index in range(n_patches):
+            start = index * patch
+            first = start if per_patch else 0
+            reuse = per_patch and index > 0  # the disk samples of patch 0, computed as they were used
+            plane = planes[index]
+            mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
+            fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
+            for i in range(start, start + patch):
+                offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
+                px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
+                kept = _store_inside(out, kept, px, py, pz, low, box)
+                for j in range(n_copies):
+                    sample = (i - first) * n_copies + j
+                    if reuse:
+                        u, v = disk[sample, 0], disk[sample, 1]
+                    else:
+                        radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
+                        angle = sample * golden_angle
+                        u, v = radius * np.cos(angle), radius * np.sin(angle)
+                        if per_patch:
+                            disk[sample, 0], disk[sample, 1] = u, v
+                    kept = _store_inside(out, kept, px + u * fx + v * sx, py + u * fy + v * sy,
+                                         pz + u * fz + v * sz, low, box)
+            ends[option * n_patches + index] = kept
     return kept
