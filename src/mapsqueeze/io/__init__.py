@@ -18,7 +18,6 @@ from mapsqueeze.io.formats import (
     write_point_chunks,
     write_points,
 )
-from mapsqueeze.io.las import LAS_SCALE_M
 from mapsqueeze.io.pointcloud import (
     FLOAT32_MAX_ERROR_M,
     MAX_ABS_COORDINATE_M,
@@ -54,3 +53,12 @@ __all__ = [
     "work_dir",
     "write_points",
 ]
+
+
+def __getattr__(name: str):
+    """LAS_SCALE_M from io.las, imported (with laspy) when asked for."""
+    if name == "LAS_SCALE_M":
+        from mapsqueeze.io.las import LAS_SCALE_M
+
+        return LAS_SCALE_M
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

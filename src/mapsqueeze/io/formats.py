@@ -24,7 +24,7 @@ import numpy as np
 
 from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
 from mapsqueeze.geometry.bounds import bounding_box
-from mapsqueeze.io import las, ply, tables
+from mapsqueeze.io import ply, tables
 from mapsqueeze.io.pcd import pcd_chunks, write_pcd
 from mapsqueeze.io.pointcloud import (
     ChunkSource,
@@ -59,6 +59,18 @@ class Format:
         return self.fields is ANY_FIELDS or name in self.fields
 
 
+def _las_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
+    from mapsqueeze.io import las  # laspy and lazrs (~0.03 CPU-s, 3 MB): imported for LAS/LAZ files only
+
+    return las.las_chunks(path, chunk_points, attributes)
+
+
+def _write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool) -> tuple[str, ...]:
+    from mapsqueeze.io import las
+
+    return las.write_las(path, chunks, stats, compress)
+
+
 FORMATS: dict[str, Format] = {fmt.name: fmt for fmt in (
     Format("bin", (".bin",), tables.kitti_chunks, tables.write_kitti,
            tables.KITTI_FIELDS + tables.SEMANTIC_KITTI_FIELDS, True),
@@ -67,8 +79,8 @@ FORMATS: dict[str, Format] = {fmt.name: fmt for fmt in (
     Format("ply-ascii", (), ply.ply_chunks, partial(ply.write_ply, text=True), ANY_FIELDS, False),
     Format("pcd", (".pcd",), pcd_chunks, partial(write_pcd, encoding="binary"), ANY_FIELDS, False),
     Format("pcd-ascii", (), pcd_chunks, partial(write_pcd, encoding="ascii"), ANY_FIELDS, False),
-    Format("las", (".las",), las.las_chunks, partial(las.write_las, compress=False), ANY_FIELDS, True),
-    Format("laz", (".laz",), las.las_chunks, partial(las.write_las, compress=True), ANY_FIELDS, True),
+    Format("las", (".las",), _las_chunks, partial(_write_las, compress=False), ANY_FIELDS, True),
+    Format("laz", (".laz",), _las_chunks, partial(_write_las, compress=True), ANY_FIELDS, True),
     Format("npy", (".npy",), tables.npy_chunks, tables.write_npy, ANY_FIELDS, True),
 )}
 
