@@ -25,6 +25,7 @@ from mapsqueeze.codec.postfilter import (
 )
 from mapsqueeze.codec.tilepoints import keep_inside
 from mapsqueeze.errors import ContainerError
+from mapsqueeze.geometry import occupancy
 from mapsqueeze.geometry.occupancy import patch_option_ious
 from mapsqueeze.geometry.patches import patch_options, patch_planes
 from mapsqueeze.metrics import IOU_VOXEL_M, iou
@@ -64,7 +65,8 @@ def test_per_patch_choices_beat_every_single_setting_and_the_search_reports_the_
     options = [apply_patch_choices(decoded[i * 256:(i + 1) * 256], [option], FACTORS, EXTENT)
                for option in range(len(PATCH_OPTIONS)) for i in range(len(choices))]
     ends = np.cumsum([len(cloud) for cloud in options])
-    found, before, after = patch_option_ious(original, np.concatenate(options), ends, start, FRAME, IOU_VOXEL_M, 3)
+    found, before, after = patch_option_ious(original, np.concatenate(options), ends, EXTENT, start, FRAME,
+                                             IOU_VOXEL_M, 3)
     assert np.array_equal(found, choices)
     assert before == pytest.approx(iou(original, keep_inside(decoded, EXTENT).astype(np.float64) + FRAME), abs=1e-12)
     assert after == pytest.approx(chosen, abs=1e-12)
@@ -90,6 +92,22 @@ def test_patch_options_give_the_bytes_of_each_patch_reworked_alone():
     assert cropped[-1] < ends[-1]  # the box cropped patch 7
     whole = patch_planes(decoded, 256, *PATCH_OPTIONS[4])  # one call over the cloud numbers its samples across it
     assert not np.array_equal(whole[512 * 1:512 * 2], expected[4 * n + 1])
+
+
+def test_the_search_grid_spans_the_tile_box_unless_too_large(monkeypatch):
+    """The voxel grid of the tile box [0, extent] gives the choices of the points' own box; when the tile box
+    holds more voxels than the grid's limit, the points' own box decides whether the search runs."""
+    original, decoded = mixed_patches()
+    points, ends = patch_options(decoded, 256, PATCH_OPTIONS, EXTENT)
+    start = np.zeros(len(decoded) // 256, dtype=np.int64)
+    found = patch_option_ious(original, points, ends, EXTENT, start, FRAME, IOU_VOXEL_M, 3)
+    far = np.array([1000.0, 1000.0, 1000.0])  # a 5000 x 5000 x 10000 voxel box: the points' own box is used
+    assert all(np.array_equal(a, b) for a, b in zip(patch_option_ious(original, points, ends, far, start, FRAME,
+                                                                      IOU_VOXEL_M, 3), found))
+    monkeypatch.setattr(occupancy, "_MAX_OCCUPANCY_VOXELS", 100_000)  # tile box 61 x 61 x 41, points' 60 x 60 x 8
+    assert patch_option_ious(original, points, ends, EXTENT, start, FRAME, IOU_VOXEL_M, 3)[2] == found[2]
+    monkeypatch.setattr(occupancy, "_MAX_OCCUPANCY_VOXELS", 20_000)
+    assert patch_option_ious(original, points, ends, EXTENT, start, FRAME, IOU_VOXEL_M, 3) is None
 
 
 def test_choices_are_left_off_where_they_do_not_pay():

@@ -328,7 +328,8 @@ def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
     patch = int(np.prod(upsampling_factors, dtype=np.int64))  # the points of one embedding point
     points, ends = patch_options(uncropped, patch, PATCH_OPTIONS, extent_m)
     start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)
-    found = patch_option_ious(original_world, points, ends, start, frame_m, IOU_VOXEL_M, PATCH_CHOICE_SWEEPS)
+    found = patch_option_ious(original_world, points, ends, extent_m, start, frame_m, IOU_VOXEL_M,
+                              PATCH_CHOICE_SWEEPS)
     if found is None:
         return None
     choices, before, after = found

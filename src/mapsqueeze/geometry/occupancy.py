@@ -56,36 +56,44 @@ def _mark_voxels(points, frame, voxel, low, shape, bit, grid):
         grid[(x * shape[1] + y) * shape[2] + z] |= bit
 
 
-def patch_option_ious(original: np.ndarray, points: np.ndarray, ends: np.ndarray, start: np.ndarray,
-                      frame_m: np.ndarray, voxel_m: tuple[float, float, float], sweeps: int
+def patch_option_ious(original: np.ndarray, points: np.ndarray, ends: np.ndarray, upper: np.ndarray,
+                      start: np.ndarray, frame_m: np.ndarray, voxel_m: tuple[float, float, float], sweeps: int
                       ) -> tuple[np.ndarray, float, float] | None:
     """(choice per patch, IoU of `start`, IoU of the choices) of a greedy search for the option of each patch that
     maximises the occupancy-grid IoU (as `metrics.iou`) of the union of the patches' points with `original`.
 
-    original: (N, 3) world metres; points: float32 tile-local points (relative to the world point frame_m) of
-    every patch under every option, option after option, patch after patch within (`patches.patch_options`);
-    ends[k n + i]: the row after patch i's points under option k; start: (n,) the first choice of each patch.
-    Each sweep visits the patches in order and gives each the option (ties: its current one, then the lowest) that
-    maximises the IoU with every other patch as chosen; it stops after `sweeps` sweeps or one that changes nothing.
-    None when the voxel box holds more than _MAX_OCCUPANCY_VOXELS voxels."""
+    original: (N, 3) world metres; points: float32 tile-local points (relative to the world point frame_m), inside
+    the box [0, upper] (metres), of every patch under every option, option after option, patch after patch within
+    (`patches.patch_options`); ends[k n + i]: the row after patch i's points under option k; start: (n,) the first
+    choice of each patch. Each sweep visits the patches in order and gives each the option (ties: its current one,
+    then the lowest) that maximises the IoU with every other patch as chosen; it stops after `sweeps` sweeps or one
+    that changes nothing. None when the voxel box of the original and the points holds more than
+    _MAX_OCCUPANCY_VOXELS voxels. The grid spans the original and the box [0, upper] (no scan of the points),
+    unless that holds too many voxels."""
     frame_m = np.asarray(frame_m, dtype=np.float64)
     voxel = np.asarray(voxel_m, dtype=np.float64)
-    corners = list(bounding_box(original))
-    if len(points):
-        corners += [corner.astype(np.float64) + frame_m for corner in bounding_box(points)]
-    low = np.floor(np.min(corners, axis=0) / voxel).astype(np.int64)
-    shape = np.floor(np.max(corners, axis=0) / voxel).astype(np.int64) - low + 1
-    if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:
-        return None
+    upper_m = np.asarray(upper).astype(np.float32).astype(np.float64)  # the float32 box of the points
+    low, shape = _voxel_box(list(bounding_box(original)) + [frame_m, upper_m + frame_m], voxel)
+    if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:  # the points' own box decides
+        corners = [corner.astype(np.float64) + frame_m for corner in bounding_box(points)] if len(points) else []
+        low, shape = _voxel_box(list(bounding_box(original)) + corners, voxel)
+        if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:
+            return None
     grid = np.zeros(int(np.prod(shape)), dtype=np.uint8)
     _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
-    cells = np.empty(ends[-1] if len(ends) else 0, dtype=np.int32)  # _MAX_OCCUPANCY_VOXELS < 2^31
+    cells = np.empty(len(points), dtype=np.int32)  # _MAX_OCCUPANCY_VOXELS < 2^31
     offsets = np.zeros(len(ends) + 1, dtype=np.int64)
     _voxel_cells(points, ends, frame_m, voxel, low, shape, np.full(len(grid), -1, dtype=np.int32), cells, offsets)
     choice = np.array(start, dtype=np.int64)
     n_options = len(ends) // len(choice) if len(choice) else 0
     before, after = _greedy_choices(grid, cells, offsets, n_options, len(choice), choice, sweeps)
     return choice, before, after
+
+
+def _voxel_box(corners: list[np.ndarray], voxel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lowest voxel, shape in voxels) of the box of the IoU voxels of these world-metre corners."""
+    low = np.floor(np.min(corners, axis=0) / voxel).astype(np.int64)
+    return low, np.floor(np.max(corners, axis=0) / voxel).astype(np.int64) - low + 1
 
 
 @compiled
@@ -96,11 +104,14 @@ def _voxel_cells(points, ends, frame, voxel, low, shape, seen, cells, offsets):
     n = 0
     begin = 0
     for entry in range(ends.shape[0]):
-        for i in range(begin, ends[entry]):
+        first = n
+        for i in range(begin, ends[entry]):  # no branch: vectorised
             x = np.int64(np.floor((np.float64(points[i, 0]) + frame[0]) / voxel[0])) - low[0]
             y = np.int64(np.floor((np.float64(points[i, 1]) + frame[1]) / voxel[1])) - low[1]
             z = np.int64(np.floor((np.float64(points[i, 2]) + frame[2]) / voxel[2])) - low[2]
-            cell = (x * shape[1] + y) * shape[2] + z
+            cells[first + i - begin] = (x * shape[1] + y) * shape[2] + z
+        for i in range(first, first + ends[entry] - begin):
+            cell = cells[i]
             if seen[cell] != entry:
                 seen[cell] = entry
                 cells[n] = cell
@@ -114,7 +125,7 @@ def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, swee
     """Greedy search of `patch_option_ious` on cell lists: patch i's distinct cells under option k are
     cells[offsets[k n + i]:offsets[k n + i + 1]]; `choice` updated in place; (IoU before, IoU after)."""
     occupied = np.zeros(original.shape[0], dtype=np.int32)  # chosen patches per cell
-    stamp = np.full(original.shape[0], -1, dtype=np.int64)
+    stamp = np.full(original.shape[0], -1, dtype=np.int32)  # fewer than sweeps n_patches n_options < 2^31 tags
     n_original = 0
     for cell in range(original.shape[0]):
         n_original += original[cell]

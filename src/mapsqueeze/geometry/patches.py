@@ -25,7 +25,8 @@ def patch_options(points: np.ndarray, patch: int, options, upper: np.ndarray | N
     disk samples numbered from its first point), its plane fitted once. Returns (float32 points, option after
     option and within an option patch after patch; ends: (len(options) n_patches,) int64, the row after patch i
     under option k at [k n_patches + i]); only the points inside [0, upper] when `upper` (metres) is given."""
-    return _rework(points, patch, options, True, upper)
+    out, ends = _rework(points, patch, options, True, upper)
+    return out[:ends[-1] if len(ends) else 0], ends
 
 
 def _rework(points: np.ndarray, patch: int, options, per_patch: bool, upper: np.ndarray | None
