@@ -94,3 +94,18 @@ def test_chosen_options_give_the_bytes_of_the_compiled_kernel_patch_by_patch(kit
     assert len(patchesnumpy.patch_planes_chosen(np.zeros((0, 3)), patch, PATCH_OPTIONS, [])) == 0
     with pytest.raises(ValueError, match="choices"):
         patchesnumpy.patch_planes_chosen(decoded, patch, PATCH_OPTIONS, choices[1:])
+
+
+def test_patch_options_return_only_the_rows_they_wrote():
+    """`patches.patch_options` allocates room for every point and copy and keeps those inside the box: the rows
+    past the last patch's end are not points (their bytes are whatever the allocation held)."""
+    from mapsqueeze.codec.postfilter import PATCH_OPTIONS
+
+    points = np.random.default_rng(8).normal(0, 1, (64 * 20, 3))
+    chosen, ends = patches.patch_options(points, 64, PATCH_OPTIONS, np.full(3, 1.0))
+    assert len(chosen) == ends[-1] < len(points) * sum(1 + option[1] for option in PATCH_OPTIONS)
+    for index, option in enumerate(PATCH_OPTIONS):
+        expected = np.concatenate([patches.patch_planes(points[i * 64:(i + 1) * 64], 64, *option, np.full(3, 1.0))
+                                   for i in range(20)])
+        first = ends[index * 20 - 1] if index else 0
+        assert chosen[first:ends[index * 20 + 19]].tobytes() == expected.tobytes()

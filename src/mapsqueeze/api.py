@@ -26,6 +26,7 @@ from mapsqueeze.codec.decompress import (
     decode_embedding,
     iter_decoded_clouds,
     iter_decoded_tiles,
+    iter_tile_points,
     tile_frame,
     tile_origin,
     tile_world_bounds,
@@ -55,6 +56,9 @@ DEFAULT_PRECISION = "q"
 
 SPILL_PREFIX = "mapsqueeze-decoded-"
 """Name prefix of decompress_file's spill folders (`io.work_dir`)."""
+
+PLACE_CHUNK_POINTS = 1 << 16
+"""Points of a decoded tile placed in the world (float64) and written at once by decompress_file's binary PLY."""
 
 SPILL_CHUNK_POINTS = 1 << 17
 """Points per chunk that decompress_file reads back from its spill files and writes (3 MB of coordinates; the
@@ -353,18 +357,29 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
     specs = schema.specs if schema and attributes else ()
     if output_format == "ply" and not specs:  # streamed: no spill file
         remove_dead_work_dirs(SPILL_PREFIX, spill_dir)
+        sizes = []  # points of each tile written
+
         def tiles() -> Iterator[np.ndarray]:
-            count = 0
-            for tile in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress, max_tile_points,
-                                            attributes=False, workers=workers, dask_scheduler=dask_scheduler):
-                count += len(tile)
-                yield tile.points
-                del tile  # released before the next tile arrives
-            if not count:
+            options = dict(attributes=False, workers=workers, dask_scheduler=dask_scheduler)
+            if bbox is None:  # each tile placed in the world part by part
+                for tile in iter_tile_points(input_path, model, None, density, n_points, progress, max_tile_points,
+                                             **options):
+                    local = tile.take()
+                    sizes.append(len(local))
+                    for start in range(0, len(local), PLACE_CHUNK_POINTS):
+                        yield tile.frame + local[start:start + PLACE_CHUNK_POINTS]
+                    del tile, local  # released before the next tile arrives
+            else:
+                for cloud in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress,
+                                                 max_tile_points, **options):
+                    sizes.append(len(cloud))
+                    yield cloud.points
+                    del cloud
+            if not sizes:
                 raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
 
         float32_certain = float(np.abs(summary.bounds).max()) + 1.0 < FLOAT32_SAFE_ABS_M
-        return write_ply_stream(Path(output_path), tiles(), float32_certain, lambda first: first * summary.n_tiles)
+        return write_ply_stream(Path(output_path), tiles(), float32_certain, lambda _: sizes[0] * summary.n_tiles)
     with work_dir(SPILL_PREFIX, spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
         streams = [open(os.path.join(spill, f"attribute{column}"), "wb") for column in range(len(specs))]

@@ -224,6 +224,47 @@ def iter_decoded_clouds(
     """As `iter_decoded_tiles`, yielding each tile as a PointCloud: its world points, the attributes coded in the
     file (each decoded point takes its nearest attribute voxel's values; none with attributes=False) and the
     file's metadata."""
+    box = None if bbox is None else parse_bbox(bbox)
+    for tile in iter_tile_points(source, model, bbox, density, n_points, progress, max_tile_points, attributes,
+                                 workers, dask_scheduler):
+        world, values = tile.frame + tile.take(), tile.values
+        if box is not None:
+            inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
+            world, values = world[inside], {name: v[inside] for name, v in values.items()}
+        if len(world):
+            yield PointCloud(world, values, tile.metadata)
+        del world, values
+
+
+class DecodedTile:
+    """One decoded tile before it is placed: `frame` (float64 (3,) world origin of its points), its points
+    relative to it (`take`), the attribute `values` of those points and the file's `metadata`."""
+
+    def __init__(self, frame: np.ndarray, points: np.ndarray, values: dict, metadata: dict):
+        self.frame, self._points, self.values, self.metadata = frame, points, values, metadata
+
+    def take(self) -> np.ndarray:
+        """The (k, 3) float32 points, handed over once (the tile keeps no reference, so they are freed as soon
+        as the caller is done with them)."""
+        points, self._points = self._points, None
+        return points
+
+
+def iter_tile_points(
+    source: bytes | str | os.PathLike,
+    model=None,
+    bbox: Sequence[float] | None = None,
+    density: float | None = None,
+    n_points: int | None = None,
+    progress: ProgressCallback | None = None,
+    max_tile_points: int = DEFAULT_MAX_TILE_POINTS,
+    attributes: bool = True,
+    workers: int | None = 1,
+    dask_scheduler: str | None = None,
+) -> Iterator[DecodedTile]:
+    """As `iter_decoded_clouds` before the tiles are placed in the world and cropped to `bbox` (which selects
+    them): a DecodedTile per decoded tile, so that a writer may place a tile part by part
+    (`api.decompress_file`)."""
     reader, stream = open_container(source)
     with stream:
         header = reader.header
@@ -255,14 +296,10 @@ def iter_decoded_clouds(
                     if attributes and reader.attribute_entries:
                         values = _tile_attributes(reader, position, local, native,
                                                   count is None and not faces[position])
-                    world = tile_frame(header, reader.entries[position]) + local
-                    del local, native  # a tile's arrays are released as soon as they are used
-                    if box is not None:
-                        inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
-                        world, values = world[inside], {name: v[inside] for name, v in values.items()}
-                    if len(world):
-                        yield PointCloud(world, values, metadata)
-                    del world, values
+                    tile = DecodedTile(tile_frame(header, reader.entries[position]), local, values, metadata)
+                    del local, native, values  # the tile's points are released once its consumer is done
+                    yield tile
+                    del tile
                 if progress:
                     progress(done, len(selected))
         finally:
