@@ -37,3 +37,17 @@ def test_an_empty_or_invalid_stream_leaves_no_file(tmp_path):
     with pytest.raises(InvalidPointCloudError, match="NaN"):
         ply.write_ply_stream(target, iter([np.zeros((3, 3)), np.full((2, 3), np.nan)]), True, lambda first: first)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("move_chunk", [1, 5, 1 << 16])
+def test_narrowed_body_moves_behind_a_longer_header(tmp_path, monkeypatch, move_chunk):
+    # float64 written, float32 kept ("float" is 1 byte shorter than "double" in each of 3 property lines), and a
+    # count 4 digits longer than the estimate: the header ends 1 byte later than the body started
+    parts = [np.round(part) for part in clouds(2.0**20, sizes=(1, 20_000))]  # whole metres: float32 exact
+    write_points(tmp_path / "expected.ply", np.concatenate(parts))
+    monkeypatch.setattr(ply, "MOVE_CHUNK_POINTS", move_chunk)
+    count = ply.write_ply_stream(tmp_path / "streamed.ply", iter(parts), False, lambda first: first)
+    assert count == 20_001
+    expected = (tmp_path / "expected.ply").read_bytes()
+    assert b"property float x" in expected and b"element vertex 20001" in expected
+    assert (tmp_path / "streamed.ply").read_bytes() == expected

@@ -138,12 +138,13 @@ def _xyz_dtype(code: str) -> np.dtype:
 
 def _move_rows(stream, source: int, source_code: str, target: int, target_code: str, count: int) -> None:
     """Move `count` values of dtype source_code at byte `source` of the file to byte `target` as target_code
-    (a value at most as wide): forwards when that writes behind the reads, else backwards (same width only)."""
+    (a value at most as wide): forwards when each chunk's write ends before the next chunk's read starts (a
+    narrower target gains step x (width - target width) bytes a chunk), else backwards (same width only)."""
     if source == target and source_code == target_code:
         return
     width, target_width = np.dtype(source_code).itemsize, np.dtype(target_code).itemsize
     step = 3 * MOVE_CHUNK_POINTS
-    forward = target <= source
+    forward = target - source <= step * (width - target_width)
     if not forward and target_width != width:
         raise ValueError("a body moves to a later offset only at its own width")
     starts = range(0, count, step) if forward else reversed(range(0, count, step))
