@@ -26,6 +26,7 @@ from mapsqueeze.codec.container import (
     open_container,
     serialise_container,
 )
+from mapsqueeze.codec.postfilter import PATCH_CHOICES, PATCH_OPTIONS, encode_patch_choices
 from mapsqueeze.codec.rawtile import encode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, MapsqueezeError, ModelError
 from mapsqueeze.io import MAX_ABS_COORDINATE_M
@@ -62,8 +63,8 @@ def parts(data: bytes):
     """(header, table records) of a container, the records carrying their payloads."""
     reader, stream = open_container(data)
     with stream:
-        records = [TileRecord(e.index, e.n_points, e.bounds_lo, e.bounds_hi, e.coding, reader.payload(p))
-                   for p, e in enumerate(reader.entries)]
+        records = [TileRecord(e.index, e.n_points, e.bounds_lo, e.bounds_hi, e.coding, reader.payload(p),
+                              e.post_filter) for p, e in enumerate(reader.entries)]
         return reader.header, records
 
 
@@ -225,3 +226,76 @@ def test_fuzzed_headers_and_tables_give_typed_errors_or_decodes(compressed, mode
         if kind == "decoded":  # a field the decoder does not depend on (e.g. a bounds box the points still fit)
             assert int(value) == parts(path.read_bytes())[0].n_points, path
     assert len(outcomes) >= FUZZ_EXAMPLES // 2
+
+
+# --- property-based mutation of version 6 choice streams (payload CRCs recomputed) ------------------------------
+
+@pytest.fixture(scope="module")
+def with_choices(compressed):
+    """`compressed` as a version 6 file decoding to the input counts: every network tile with patch choices (a
+    stream of one option per embedding point, all options used) before its latent payload."""
+    header, records = parts(compressed)
+    changed = []
+    for record in records:
+        if record.coding is TileCoding.network:
+            embedding, _ = header.latent.decode(record.payload, record.n_points, "tile")
+            choices = np.arange(len(embedding)) % len(PATCH_OPTIONS)
+            record = dataclasses.replace(record, payload=encode_patch_choices(choices) + record.payload,
+                                         post_filter=PATCH_CHOICES)
+        changed.append(record)
+    return serialise_container(dataclasses.replace(header, default_count=DefaultCount.input), changed)
+
+
+def decode_under_cap(model_dir, tmp_path, crafted: list[bytes]) -> list[tuple[str, str]]:
+    """(outcome, value) of decoding each file in a subprocess under MEMORY_CAP_BYTES: ("decoded", count) or
+    ("error", MapsqueezeError subclass); fails on any other exception, a crash or a hang."""
+    paths = []
+    for number, data in enumerate(crafted):
+        paths.append(tmp_path / f"crafted{number}.msq")
+        paths[-1].write_bytes(data)
+    script = _DECODE_UNDER_CAP.format(cap=MEMORY_CAP_BYTES)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    result = subprocess.run([sys.executable, "-c", script, "x", str(model_dir), *map(str, paths)],
+                            capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    outcomes = [tuple(line.split(" ", 1)) for line in result.stdout.split("\n")[:-1]]
+    assert len(outcomes) == len(paths)
+    return outcomes
+
+
+_STREAM_EDITS = st.lists(st.tuples(st.sampled_from(["set", "insert", "delete", "cut"]), st.integers(0, 63),
+                                   st.integers(0, 255)), min_size=1, max_size=3)
+
+
+def test_fuzzed_choice_streams_give_typed_errors_or_decodes(with_choices, model_dir, model, tmp_path):
+    header, records = parts(with_choices)
+    assert open_container(with_choices)[0].version == 6
+    assert len(mapsqueeze.decompress(with_choices, model=model)) == header.n_points  # the unmutated file decodes
+    network = [p for p, record in enumerate(records) if record.post_filter == PATCH_CHOICES]
+    crafted: list[bytes] = []
+
+    @settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=True,
+              suppress_health_check=list(HealthCheck))
+    @given(_STREAM_EDITS, st.integers(0, 100))
+    def mutate(edits, position):
+        position = network[position % len(network)]
+        payload = bytearray(records[position].payload)
+        for kind, offset, value in edits:  # offsets within the stream's first 64 bytes: its length, count, histogram
+            offset = min(offset, len(payload))
+            if kind == "set" and offset < len(payload):
+                payload[offset] = value
+            elif kind == "insert":
+                payload.insert(offset, value)
+            elif kind == "delete" and offset < len(payload):
+                del payload[offset]
+            elif kind == "cut":
+                del payload[offset:]
+        crafted.append(craft(with_choices, tile_changes={"payload": bytes(payload)}, position=position))
+
+    mutate()
+    for data, (kind, value) in zip(crafted, decode_under_cap(model_dir, tmp_path, crafted)):
+        if kind == "decoded":  # a latent payload shifted by the edits may place a tile's points beyond its box,
+            assert int(value) > 0  # which then decodes to fewer points than its count (clamped, thinned at faces)
+        else:
+            assert kind == "error"
+    assert len(crafted) >= FUZZ_EXAMPLES // 2
