@@ -138,6 +138,18 @@ def test_resample_to_count_densifies_between_neighbours():
     assert np.all(dense[:, 1:] == 0) and dense[:, 0].min() >= 0 and dense[:, 0].max() <= 9
 
 
+@pytest.mark.parametrize("n_input", [2, 3, 4, 10])
+def test_resample_to_count_densifies_a_few_points_to_any_count(n_input):
+    # fewer points than the neighbours one round takes: their midpoints alone are too few (4 points gave 16 of 40)
+    few = np.random.default_rng(n_input).uniform(0, 1, (n_input, 3)).astype(np.float32)
+    for n in (n_input * n_input + 1, 40, 1000):
+        dense = resample_to_count(few, n)
+        assert len(dense) == n and dense.dtype == few.dtype
+        np.testing.assert_array_equal(dense[:n_input], few)
+        assert np.all(dense >= few.min(axis=0)) and np.all(dense <= few.max(axis=0))  # midpoints: in their box
+        np.testing.assert_array_equal(dense, resample_to_count(few, n))
+
+
 def test_resample_to_count_thins_to_an_even_deterministic_subset():
     line = np.c_[np.arange(1000.0), np.zeros(1000), np.zeros(1000)]
     thin = resample_to_count(line, 100)

@@ -26,6 +26,8 @@ def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
         return np.repeat(cloud, int(np.ceil(n_points / len(cloud))), axis=0)[:n_points]
     midpoints = 0.5 * (cloud[:, None, :] + cloud[nn_idx]).reshape(-1, 3)
     extra = n_points - len(cloud)
+    if extra > len(midpoints):  # fewer points than a round's k neighbours: densify the denser cloud again
+        return resample_to_count(np.concatenate([cloud, midpoints], axis=0), n_points)
     if extra < len(midpoints):
         midpoints = resample_to_count(midpoints, extra)
     return np.concatenate([cloud, midpoints[:extra]], axis=0)
