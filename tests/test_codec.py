@@ -295,6 +295,8 @@ def test_decoded_points_outside_a_tile_are_dropped_not_clamped_onto_its_faces(ne
         outside = inside[:1000] + np.float32(2.0) * extent  # beyond the upper faces
 
         class GrownPastTheFaces:
+            config = model.config  # the decode limit counts its native output
+
             def decode(self, points, features, n_points=None):
                 assert n_points is None  # the native output, cropped before resampling
                 return np.concatenate([inside, outside])
@@ -490,6 +492,9 @@ def test_default_decode_is_each_tiles_native_count(network_only, model):
     assert mapsqueeze.info(network_only).default_count == "native"
     with pytest.raises(DecodeLimitError, match="native count"):  # the limit holds for native counts too
         mapsqueeze.decompress(network_only, model=model, max_tile_points=max(e.n_points for e in reader.entries))
+    with pytest.raises(DecodeLimitError, match="native count"):  # and for the native output a count is drawn from
+        mapsqueeze.decompress(network_only, model=model, n_points=len(reader.entries),
+                              max_tile_points=max(e.n_points for e in reader.entries))
 
 
 def as_version_1(data: bytes) -> bytes:

@@ -151,7 +151,8 @@ def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, coun
                    ) -> np.ndarray:
     """A tile's payload bytes decoded to `count` float32 points relative to `tile_frame`, all inside the tile's
     bounds (count None: the coding's native count, e.g. the network's whole output inside the box after the
-    tile's post-filter, refused above `max_tile_points`). A network tile's output goes through the post-filter
+    tile's post-filter). A network tile whose native count (decoded whole, then resampled) is above
+    `max_tile_points` is refused whatever `count` is. A network tile's output goes through the post-filter
     its table entry signals (`codec.postfilter`) and the density rule at the `faces` it shares with other tiles
     of the file (`seams.internal_faces`; none: the tile as the encoder sees it) before it is resampled to `count`.
 
@@ -169,9 +170,9 @@ def decode_payload(header: Header, entry: TileEntry, payload: bytes, model, coun
                                   entry.frame_extent_m(tile_size), count)
         else:
             points, features, choices = _network_payload(header, entry, payload, label)
-            native = None if count is not None else (len(points) * int(np.prod(model.config.upsampling_factors))
-                                                     * (1 + PostFilter.parse(entry.post_filter).spread_copies))
-            if native is not None and native > max_tile_points:
+            native = (len(points) * int(np.prod(model.config.upsampling_factors))
+                      * (1 + PostFilter.parse(entry.post_filter).spread_copies))
+            if native > max_tile_points:  # decoded whole before any resampling to `count`
                 raise DecodeLimitError(f"{label}: its native count of {native:,} points is more than the limit of "
                                        f"{max_tile_points:,} points per tile; allow more with --max-tile-points N "
                                        f"(API: max_tile_points=N, at most {MAX_POINTS_PER_TILE:,})")
