@@ -211,19 +211,22 @@ def pinned_embeddings() -> list[tuple[np.ndarray, np.ndarray]]:
     return tiles
 
 
-@pytest.mark.parametrize(("name", "digest"), [
-    ("f32", "ea4d8b510d1a4007a17bcf227e7696d0cc1b21f5c681333640463aa06ea4f96a"),
-    ("f16", "7a9d65e3918f723db1bb8ef1d3cb6a12cca3aaf2eb41835967c757e77f2f3b16"),
-    ("q", "2bcde87386437f20ccbaf010c2415113fabbb7f5f9c4def85eba1334cac66160"),
+@pytest.mark.parametrize(("name", "steps", "digest"), [
+    ("f32", {}, "ea4d8b510d1a4007a17bcf227e7696d0cc1b21f5c681333640463aa06ea4f96a"),
+    ("f16", {}, "7a9d65e3918f723db1bb8ef1d3cb6a12cca3aaf2eb41835967c757e77f2f3b16"),
+    # q at the steps of format version 6's first writer (0.01 x r_s, 0.2 std): the coding itself is unchanged
+    ("q", {"position_step_m": 0.02, "feature_step_std": 0.2},
+     "2bcde87386437f20ccbaf010c2415113fabbb7f5f9c4def85eba1334cac66160"),
+    ("q", {}, "9912c53afdf8f04cab04c1c36aa112905d4528176d1d76fa8bb5a39109725487"),  # the default steps
 ])
-def test_latent_codec_bytes_are_pinned(name, digest):
+def test_latent_codec_bytes_are_pinned(name, steps, digest):
     """Header state and tile payloads of each precision must not drift: pinned digests, changed only with the
-    format; the codec read back from its header state decodes what the fitted one encoded."""
+    format or the default q steps; the codec read back from its header state decodes what the fitted one encoded."""
     import hashlib
 
     layout = LatentLayout(2.0, (40.0, 40.0, 15.0), 3)
     tiles = pinned_embeddings()
-    codec = LATENT_CODECS[Precision[name]].fit(tiles, layout)
+    codec = LATENT_CODECS[Precision[name]].fit(tiles, layout, **steps)
     writer = ByteWriter()
     codec.write(writer)
     payloads = [codec.encode(points, features) for points, features in tiles]

@@ -459,7 +459,8 @@ def _code_network_candidates(encoded: list[_EncodedTile], model, precision: Prec
                              feature_step_std: float) -> LatentCodec:
     """Code every network tile with the precision's latent codec fitted over all of them (q: quantiser and
     histograms) and add its candidate: the payload's size and the D_e of the network's output for the unquantised
-    embedding, measured while the tile was in memory (the embedding coding adds 0.4-2.4 % to it, README)."""
+    embedding, measured while the tile was in memory (the embedding coding adds a few per cent to it, BENCHMARKS.md
+    "Quantiser steps")."""
     network_tiles = [tile for tile in encoded if tile.points is not None]
     layout = LatentLayout(float(model.config.subsampling_dist), tuple(float(v) for v in model.config.tile_size),
                           int(model.config.embedding_dim))

@@ -44,11 +44,13 @@ class Precision(enum.IntEnum):
             raise MapsqueezeError(f"unknown precision {name!r}; choose one of {choices}") from None
 
 
-DEFAULT_POSITION_STEP_RS = 0.01
+DEFAULT_POSITION_STEP_RS = 0.02
 """q: quantisation step of the offset of an embedding point from its cell centre, as a fraction of r_s
-(2 cm for e1): the coarser grids of e0/e1 tolerate coarser positions for the same relative D_e loss."""
+(4 cm for e1): the coarser grids of e0/e1 tolerate coarser positions for the same relative D_e loss. With
+DEFAULT_FEATURE_STEP_STD, the rate-distortion-best of the steps measured against the classical front
+(BENCHMARKS.md, "Quantiser steps")."""
 
-DEFAULT_FEATURE_STEP_STD = 0.2
+DEFAULT_FEATURE_STEP_STD = 0.3
 """q: quantisation step of the (decorrelated) features, as a fraction of their typical standard deviation."""
 
 
