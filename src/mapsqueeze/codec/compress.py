@@ -131,7 +131,8 @@ def compress_map(
     one of a list of them whose tile choices meet `target` best (`codec.modes`; every tile is stored with the
     candidate coding the target prefers: the network's embedding, raw points or an octree).
 
-    position_step_m / feature_step_std set the q quantiser (default DEFAULT_POSITION_STEP_RS x r_s and
+    position_step_m / feature_step_std set the q quantiser (defaults DEFAULT_POSITION_STEP_RS x r_s, at most
+    DEFAULT_POSITION_STEP_MAX_M, and
     DEFAULT_FEATURE_STEP_STD). refine_steps > 0 refines each network tile's embedding at encode time
     (`CompressionModel.refine`: slower encoding, lower D_e, same format). Tiles are encoded by `workers` processes
     (None: one per core) or on the Dask cluster at `dask_scheduler` ("local" starts one; `codec.executor`); only

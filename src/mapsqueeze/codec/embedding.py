@@ -45,10 +45,15 @@ class Precision(enum.IntEnum):
 
 
 DEFAULT_POSITION_STEP_RS = 0.02
-"""q: quantisation step of the offset of an embedding point from its cell centre, as a fraction of r_s
-(4 cm for e1): the coarser grids of e0/e1 tolerate coarser positions for the same relative D_e loss. With
-DEFAULT_FEATURE_STEP_STD, the rate-distortion-best of the steps measured against the classical front
-(BENCHMARKS.md, "Quantiser steps")."""
+"""q: quantisation step of the offset of an embedding point from its cell centre, as a fraction of r_s, at most
+DEFAULT_POSITION_STEP_MAX_M (2 cm for e3, 2.4 cm for e2, 4 cm for e1 and e0): the coarser grids tolerate coarser
+positions for the same relative D_e loss. With DEFAULT_FEATURE_STEP_STD, the steps that moved the real and
+simulated submaps' rate points furthest towards the classical front in D_e and IoU (BENCHMARKS.md, "Quantiser
+steps")."""
+
+DEFAULT_POSITION_STEP_MAX_M = 0.04
+"""q: the largest default position step (metres): e0 (r_s 3 m) at 6 cm lost IoU against the front on 6 of 9
+submaps, at 4 cm on 2."""
 
 DEFAULT_FEATURE_STEP_STD = 0.3
 """q: quantisation step of the (decorrelated) features, as a fraction of their typical standard deviation."""

@@ -17,6 +17,7 @@ import numpy as np
 
 from mapsqueeze.codec.embedding import (
     DEFAULT_FEATURE_STEP_STD,
+    DEFAULT_POSITION_STEP_MAX_M,
     DEFAULT_POSITION_STEP_RS,
     CellGrid,
     Precision,
@@ -139,10 +140,11 @@ class QuantisedCodec(LatentCodec):
     @classmethod
     def fit(cls, embeddings: Sequence[Embedding], layout: LatentLayout, *, position_step_m: float | None = None,
             feature_step_std: float = DEFAULT_FEATURE_STEP_STD) -> QuantisedCodec:
-        """A map-wide quantiser (position step default: DEFAULT_POSITION_STEP_RS x r_s) and histograms."""
+        """A map-wide quantiser (position step default: DEFAULT_POSITION_STEP_RS x r_s, at most
+        DEFAULT_POSITION_STEP_MAX_M) and histograms."""
         features = np.concatenate([f for _, f in embeddings] or [np.zeros((0, layout.n_features), np.float32)])
         if position_step_m is None:
-            position_step_m = DEFAULT_POSITION_STEP_RS * layout.subsampling_dist_m
+            position_step_m = min(DEFAULT_POSITION_STEP_RS * layout.subsampling_dist_m, DEFAULT_POSITION_STEP_MAX_M)
         quantiser = Quantiser.fit(features, position_step_m, feature_step_std)
         grid = cls.grid(layout)
         quantised = [quantise(points, f, grid, quantiser) for points, f in embeddings]
