@@ -218,6 +218,69 @@ def test_a_support_rounded_differently_is_repaired_and_a_different_one_refused()
     repaired = decode_tile_attributes(stream, rounded, None, coded, TILE, "tile")
     for name in expected:
         assert np.array_equal(repaired[name], expected[name])
+    repaired = decode_tile_attributes(stream, rounded, None, coded, TILE, "tile", crc_optional=True)
+    for name in expected:  # a version 3 or 4 stream with the CRC is repaired alike
+        assert np.array_equal(repaired[name], expected[name])
     rounded[-1, 0] = 20.01  # 1 cm across: not a rounding difference
     with pytest.raises(ContainerError, match="does not match"):
         decode_tile_attributes(stream, rounded, None, coded, TILE, "tile")
+    with pytest.raises(ContainerError, match="does not match.*read without the CRC"):
+        decode_tile_attributes(stream, rounded, None, coded, TILE, "tile", crc_optional=True)
+
+
+def without_crc(stream: bytes) -> bytes:
+    """The stream in the layout of versions 3 and 4 written before the support's CRC: the same bytes less the CRC
+    after the voxel count."""
+    reader = ByteReader(stream, "stream")
+    reader.varint()
+    count_end = len(stream) - reader.remaining
+    return stream[:count_end] + stream[count_end + 4:]
+
+
+def test_streams_without_the_support_crc_decode_where_the_version_allows_them():
+    """Versions 3 and 4 (crc_optional) read both layouts to the same values; newer versions refuse the layout
+    without the CRC, and a stream of it that does not parse exactly on the decoded support gives one clean error."""
+    support = surface(6000)
+    values = {"intensity": support[:, 0] * 3 + support[:, 1], "label": (support[:, 0] // 10).astype(np.uint8)}
+    coded = schema(INTENSITY, LABEL)
+    stream = encode_tile_attributes(support, support, values, coded, TILE)
+    old = without_crc(stream)
+    elsewhere = surface(3000, seed=9)
+    for points in (None, elsewhere):
+        expected = decode_tile_attributes(stream, support, points, coded, TILE, "tile")
+        for layout in (stream, old):
+            decoded = decode_tile_attributes(layout, support, points, coded, TILE, "tile", crc_optional=True)
+            assert set(decoded) == set(expected)
+            for name in expected:
+                assert decoded[name].dtype == expected[name].dtype and np.array_equal(decoded[name], expected[name])
+    with pytest.raises(ContainerError, match=r"support \(\d+ voxels, CRC [0-9a-f]{8}\) does not match"):
+        decode_tile_attributes(old, support, None, coded, TILE, "tile")
+    with pytest.raises(ContainerError, match="read without the CRC .*voxel count is not the decoded tile's"):
+        decode_tile_attributes(old, surface(4000, seed=5)[:3000], None, coded, TILE, "tile", crc_optional=True)
+    for bad in (old + b"\0\0\0\0", old[:-4], old[:6]):
+        with pytest.raises(ContainerError, match="read without the CRC"):
+            decode_tile_attributes(bad, support, None, coded, TILE, "tile", crc_optional=True)
+
+
+def test_crafted_streams_of_either_layout_give_a_clean_error_where_both_are_read():
+    support = surface(4000)
+    values = {"intensity": support[:, 0] * 3, "label": (support[:, 0] // 10).astype(np.uint8)}
+    coded = schema(INTENSITY, LABEL)
+    stream = encode_tile_attributes(support, support, values, coded, TILE)
+    rng = np.random.default_rng(4)
+    cases = []
+    for layout in (stream, without_crc(stream)):
+        cases += [layout[:-1], layout[:3], layout + b"\1"]
+        for _ in range(40):
+            corrupt = bytearray(layout)
+            corrupt[rng.integers(0, len(layout))] ^= 1 << int(rng.integers(0, 8))
+            cases.append(bytes(corrupt))
+    errors = 0
+    for case in cases:
+        try:
+            decoded = decode_tile_attributes(case, support, None, coded, TILE, "tile", crc_optional=True)
+        except ContainerError:
+            errors += 1
+            continue
+        assert set(decoded) == {"intensity", "label"} and len(decoded["label"]) == len(support)
+    assert errors >= len(cases) // 2

@@ -30,9 +30,15 @@ from mapsqueeze.codec.attrfield import (
     read_integer_tables,
     support_voxels,
 )
-from mapsqueeze.codec.attrsupport import checked_support, write_support_check
+from mapsqueeze.codec.attrsupport import (
+    read_support_check,
+    repaired_support,
+    support_crc,
+    support_matches,
+    write_support_check,
+)
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter, SymbolReader, SymbolWriter
-from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.errors import ContainerError, InvalidPointCloudError
 from mapsqueeze.geometry.morton import morton_cells
 
 DEFAULT_VOXEL_M = 1.0
@@ -209,19 +215,60 @@ def encode_tile_attributes(support: np.ndarray, points_local: np.ndarray, attrib
 
 
 def decode_tile_attributes(stream: bytes, support: np.ndarray, points_local: np.ndarray | None,
-                           schema: AttributeSchema, tile_size: np.ndarray, what: str) -> dict[str, np.ndarray]:
+                           schema: AttributeSchema, tile_size: np.ndarray, what: str,
+                           crc_optional: bool = False) -> dict[str, np.ndarray]:
     """Attributes of decoded points (metres, tile frame; None: the support itself) from a tile's attribute stream
-    and its default decoded points `support`: each point takes the values of its nearest support voxel."""
+    and its default decoded points `support`: each point takes the values of its nearest support voxel.
+    crc_optional: the stream may also have the layout without the support's CRC (container versions 3 and 4,
+    docs/format.md), which is read when the CRC does not match, and kept only if it parses exactly on the decoded
+    tile's support."""
+    codes, voxel, per_voxel = _support_values(stream, support, schema, tile_size, what, crc_optional)
+    if points_local is None:
+        nearest = voxel.ravel()
+    else:
+        centres = (morton_cells(codes) + 0.5) * schema.voxel_m
+        nearest = KDTree(centres).query(np.asarray(points_local, dtype=np.float64), k=1)[1].astype(np.int64)
+    return {spec.name: restore(spec, values[nearest]) for spec, values in zip(schema.specs, per_voxel)}
+
+
+def _support_values(stream: bytes, support: np.ndarray, schema: AttributeSchema, tile_size: np.ndarray, what: str,
+                    crc_optional: bool) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """The support's codes, each support point's voxel and each attribute's values per voxel: the stream's support
+    as stated by its count and CRC (repaired, `attrsupport.repaired_support`) or, with crc_optional and a CRC that
+    does not match, the decoded tile's support when the stream parses exactly without the CRC."""
+    codes, voxel = support_voxels(support, tile_size, schema.voxel_m)
     reader = ByteReader(stream, what)
-    codes, voxel = checked_support(reader, support, tile_size, schema.voxel_m)
-    n_voxels = len(codes)
+    n_voxels, crc = read_support_check(reader)
+    if support_matches(codes, n_voxels, crc):
+        return codes, voxel, _voxel_values(reader, codes, schema)
+    without_crc = ""
+    if crc_optional:  # such a stream has 4 bytes after its count too: every histogram takes at least 4
+        legacy = ByteReader(stream, what)
+        try:
+            if legacy.varint(limit=2**40) != len(codes):
+                raise legacy.fail(f"its voxel count is not the decoded tile's {len(codes)}")
+            return codes, voxel, _voxel_values(legacy, codes, schema)
+        except ContainerError as error:
+            without_crc = (", and read without the CRC (versions 3 and 4 written before it) "
+                           + str(error).removeprefix(f"{what}: "))
+    repaired = repaired_support(support, n_voxels, crc, tile_size, schema.voxel_m)
+    if repaired is not None:
+        return *repaired, _voxel_values(reader, repaired[0], schema)
+    raise reader.fail(f"attribute stream's support ({n_voxels} voxels, CRC {crc:08x}) does not match the decoded "
+                      f"tile's ({len(codes)} voxels, CRC {support_crc(codes):08x}) even after moving points on voxel "
+                      f"faces{without_crc} (decompress --no-attributes decodes the geometry alone)")
+
+
+def _voxel_values(reader: ByteReader, codes: np.ndarray, schema: AttributeSchema) -> list[np.ndarray]:
+    """Each attribute's values per support voxel from the rest of the stream (tables, then one ANS stream consumed
+    exactly)."""
     tables = []
     for spec in schema.specs:
         if spec.kind == CATEGORICAL:
-            tables.append((read_palette(reader, n_voxels, spec.name), read_category_tables(reader)))
+            tables.append((read_palette(reader, len(codes), spec.name), read_category_tables(reader)))
         else:
             tables.append((None, read_integer_tables(reader)))
-    symbols = SymbolReader(reader.raw(reader.remaining), what)
+    symbols = SymbolReader(reader.raw(reader.remaining), reader.what)
     lod = LevelsOfDetail(codes)
     per_voxel = []
     for spec, (palette, histograms) in zip(schema.specs, tables):
@@ -233,12 +280,7 @@ def decode_tile_attributes(stream: bytes, support: np.ndarray, points_local: np.
         except ValueError:
             raise reader.fail(f"palette index of {spec.name!r} out of range") from None
     symbols.finish()
-    if points_local is None:
-        nearest = voxel.ravel()
-    else:
-        centres = (morton_cells(codes) + 0.5) * schema.voxel_m
-        nearest = KDTree(centres).query(np.asarray(points_local, dtype=np.float64), k=1)[1].astype(np.int64)
-    return {spec.name: restore(spec, values[nearest]) for spec, values in zip(schema.specs, per_voxel)}
+    return per_voxel
 
 
 def read_palette(reader: ByteReader, n_voxels: int, name: str) -> np.ndarray:

@@ -34,24 +34,30 @@ def write_support_check(writer: ByteWriter, codes: np.ndarray) -> None:
     writer.pack("I", support_crc(codes))
 
 
-def checked_support(reader: ByteReader, support: np.ndarray, tile_size: np.ndarray, voxel_m: float
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """The support's codes and each point's voxel (`support_voxels`), repaired to the count and CRC the stream
-    states; ContainerError (via reader.fail) when no allowed move gives them."""
+def read_support_check(reader: ByteReader) -> tuple[int, int]:
+    """The support's voxel count and CRC32 that start an attribute stream."""
     n_voxels = reader.varint(limit=2**40)
     (crc,) = reader.unpack("I")
-    codes, voxel = support_voxels(support, tile_size, voxel_m)
-    if len(codes) == n_voxels and support_crc(codes) == crc:
-        return codes, voxel
+    return n_voxels, crc
+
+
+def support_matches(codes: np.ndarray, n_voxels: int, crc: int) -> bool:
+    return len(codes) == n_voxels and support_crc(codes) == crc
+
+
+def repaired_support(support: np.ndarray, n_voxels: int, crc: int, tile_size: np.ndarray, voxel_m: float
+                     ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The support's codes and each point's voxel (`support_voxels`) after the first allowed move of points on voxel
+    faces that gives the count and CRC the stream states; None when none does."""
     points = np.asarray(support, dtype=np.float64)
-    repairable = abs(len(codes) - n_voxels) <= 2  # each of at most two moves changes the count by at most one
-    for moved in _candidate_moves(points, codes, voxel.ravel(), tile_size, voxel_m) if repairable else ():
+    codes, voxel = support_voxels(points, tile_size, voxel_m)
+    if abs(len(codes) - n_voxels) > 2:  # each of at most two moves changes the count by at most one
+        return None
+    for moved in _candidate_moves(points, codes, voxel.ravel(), tile_size, voxel_m):
         codes, voxel = support_voxels(moved, tile_size, voxel_m)
-        if len(codes) == n_voxels and support_crc(codes) == crc:
+        if support_matches(codes, n_voxels, crc):
             return codes, voxel
-    raise reader.fail(f"attribute stream's support ({n_voxels} voxels) does not match the decoded tile's "
-                      f"({len(support_voxels(support, tile_size, voxel_m)[0])} voxels) even after moving points "
-                      "on voxel faces (decompress --no-attributes decodes the geometry alone)")
+    return None
 
 
 def _candidate_moves(points: np.ndarray, codes: np.ndarray, voxel: np.ndarray, tile_size: np.ndarray,

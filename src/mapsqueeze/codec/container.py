@@ -42,6 +42,9 @@ ATTRIBUTES_ON_DECODED_GEOMETRY = 3
 POST_FILTER_VERSION = 4
 """First version whose tile table entries carry a post-filter byte."""
 _VERSION_WITHOUT_POST_FILTER = 3
+SUPPORT_CRC_VERSION = PATCH_VERSION
+"""First version whose attribute streams all carry their support's CRC; versions 3 and 4 were written without it
+and, later, with it (docs/format.md, "Attributes"), and are read in both layouts."""
 _PREAMBLE = struct.Struct("<4sHHI")  # magic, version, reserved flags, header body length
 _CRC = struct.Struct("<I")
 _TABLE_LENGTH = struct.Struct("<I")

@@ -14,6 +14,7 @@ from mapsqueeze.codec.container import (
     ATTRIBUTES_ON_DECODED_GEOMETRY,
     DEFAULT_MAX_TILE_POINTS,
     MAX_POINTS_PER_TILE,
+    SUPPORT_CRC_VERSION,
     ContainerReader,
     DefaultCount,
     Header,
@@ -317,7 +318,8 @@ def _tile_attributes(reader: ContainerReader, position: int, local: np.ndarray, 
     tile_size = np.asarray(reader.header.tile_size)
     if native is None:
         return decode_legacy_tile_attributes(stream, local, schema, tile_size, label)
-    return decode_tile_attributes(stream, native, None if at_native else local, schema, tile_size, label)
+    return decode_tile_attributes(stream, native, None if at_native else local, schema, tile_size, label,
+                                  crc_optional=reader.version < SUPPORT_CRC_VERSION)
 
 
 def _decode_job(context: tuple[Header, object, int, bool],
