@@ -5,6 +5,7 @@ import sys
 
 import numpy as np
 import pytest
+from threadpoolctl import ThreadpoolController
 
 import mapsqueeze
 from mapsqueeze.codec import executor as executor_module
@@ -157,6 +158,16 @@ def test_pool_workers_reuse_freed_memory_for_the_next_tile():
     assert max(faults) < 500  # 0 measured; ~2,000 with glibc's defaults (arrays mapped afresh)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_decoding_threads_reuse_freed_memory_for_the_next_tile():
+    pool = executor_module.ThreadExecutor(2)
+    try:
+        faults = list(pool.map(_page_faults_of_a_second_round, None, [[2, 4, 8, 16]] * 2))
+    finally:
+        pool.close()
+    assert max(faults) < 500  # a thread's faults count for the whole process: the other thread's too
+
+
 @pytest.mark.parametrize("bad", [0, -1, True, 2.5])
 def test_bad_worker_counts_are_refused(map_points, model, bad):
     with pytest.raises(MapsqueezeError, match="workers"):
@@ -190,14 +201,50 @@ def test_the_pool_server_starts_before_the_map_is_tiled_and_only_for_a_pool(map_
     assert events[:2] == [("server", 1), ("tiling", None)]
 
 
-def test_decompress_starts_the_pool_server_before_anything_else(model, serial, monkeypatch):
-    from mapsqueeze.codec import decompress as decompress_module
+def test_decompress_decodes_in_threads_of_this_process(model, serial, monkeypatch):
+    """Several workers decode in a pool of threads (`ThreadExecutor`): no pool server, no child process, the points
+    of the serial run, numpy's BLAS at one thread in every job and back at the caller's count afterwards."""
+    import multiprocessing
 
-    events = []
-    monkeypatch.setattr(decompress_module, "start_pool_server",
-                        lambda workers, scheduler, jobs, preload: events.append(("server", workers, jobs, preload)))
-    monkeypatch.setattr(decompress_module, "target_counts",
-                        lambda *args, real=decompress_module.target_counts: events.append("counts") or real(*args))
-    assert np.array_equal(mapsqueeze.decompress(serial[0], model=model, workers=3), serial[1])
+    opened, seen = [], []
+    monkeypatch.setattr(executor_module, "_forkserver", lambda workers, preload: pytest.fail("a pool server"))
+    real = executor_module.ThreadExecutor
+
+    class Spy(real):
+        def __init__(self, workers):
+            opened.append(workers)
+            super().__init__(workers)
+
+        def map(self, function, context, items):
+            def job(context, item):
+                seen.append(numpy_blas_threads())
+                return function(context, item)
+            return super().map(job, context, items)
+
+    monkeypatch.setattr(executor_module, "ThreadExecutor", Spy)
+    blas = ThreadpoolController().select(user_api="blas")
+    numpy_blas_threads = lambda: {library["num_threads"] for library in blas.info()  # noqa: E731
+                                  if "numpy" in library["filepath"]}
+    with blas.limit(limits=2):
+        assert numpy_blas_threads() == {2}
+        assert np.array_equal(mapsqueeze.decompress(serial[0], model=model, workers=3), serial[1])
+        assert numpy_blas_threads() == {2}
     n_tiles = mapsqueeze.info(serial[0]).n_tiles
-    assert events == [("server", 3, n_tiles, decompress_module.WORKER_MODULES), "counts"]
+    assert opened == [min(3, n_tiles)] and seen == [{1}] * n_tiles
+    assert multiprocessing.active_children() == []
+
+
+def test_thread_pool_gives_results_in_order_and_passes_errors_on():
+    pool = executor_module.ThreadExecutor(3)
+    try:
+        assert list(pool.map(lambda context, item: context + item, 100, range(12))) == list(range(100, 112))
+        with pytest.raises(MapsqueezeError, match="tile 4"):
+            list(pool.map(_fail_on_four, None, range(8)))
+    finally:
+        pool.close(abort=True)
+
+
+def _fail_on_four(context, item):
+    if item == 4:
+        raise MapsqueezeError("tile 4 is broken")
+    return item

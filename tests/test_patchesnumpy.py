@@ -109,3 +109,18 @@ def test_patch_options_return_only_the_rows_they_wrote():
                                    for i in range(20)])
         first = ends[index * 20 - 1] if index else 0
         assert chosen[first:ends[index * 20 + 19]].tobytes() == expected.tobytes()
+
+
+def test_running_sums_add_the_rows_one_after_the_other_from_zero():
+    """`_running_sum` (numpy's reduction over the outer axis) adds row by row from 0.0 like the kernel: the bytes
+    of a loop over the rows, on values of 12 orders of magnitude (any other order rounds differently) and on signed
+    zeros."""
+    rng = np.random.default_rng(5)
+    for rows, columns in ((625, (6, 52)), (125, (3, 7)), (1, (3, 2)), (3, (2,)), (1000, (1,))):
+        values = rng.standard_normal((rows, *columns)) * 10.0 ** rng.integers(-3, 9, (rows, *columns))
+        values[:, ..., 0] = -0.0
+        looped = np.zeros(columns)
+        for row in values:
+            looped += row
+        assert patchesnumpy._running_sum(values).tobytes() == looped.tobytes()
+    assert patchesnumpy._running_sum(np.full((4, 3), -0.0)).tobytes() == np.zeros(3).tobytes()  # 0.0 + -0.0

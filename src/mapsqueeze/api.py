@@ -143,7 +143,8 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
     tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
     choose another density. model defaults to the shipped model named in the file; its weights must match the
     file's. A tile asked for more than max_tile_points points raises DecodeLimitError (a crafted file may claim
-    millions of points in a few bytes). workers / dask_scheduler: where tiles are decoded, as in `compress`.
+    millions of points in a few bytes). workers: threads decoding tiles in parallel (None: one per core; 1: this
+    thread); dask_scheduler: as in `compress`.
     """
     tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress, max_tile_points,
                                     workers=workers, dask_scheduler=dask_scheduler))

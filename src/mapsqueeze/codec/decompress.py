@@ -23,7 +23,7 @@ from mapsqueeze.codec.container import (
     frame_origin,
     open_container,
 )
-from mapsqueeze.codec.executor import ProgressCallback, open_executor, start_pool_server
+from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.postfilter import PostFilter, decode_patch_choices, split_patch_choices
 from mapsqueeze.codec.rawtile import decode_raw_tile
@@ -34,8 +34,9 @@ from mapsqueeze.geometry.resample import resample_to_count
 from mapsqueeze.io import PointCloud
 
 WORKER_MODULES = ("mapsqueeze.codec.decompress", "mapsqueeze.model.compression")
-"""What decoding workers import (`codec.executor.ProcessExecutor`'s preload): the numpy decoder and post-filters,
-no numba."""
+"""What processes that decode tiles import (the preload of `codec.executor.ProcessExecutor` pools decoding for the
+encoder's attribute coder, `codec.tileattributes`; decompress decodes in threads): the numpy decoder and
+post-filters, no numba."""
 
 MIN_DENSITY_EXTENT_M = 1.0
 """--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
@@ -203,7 +204,7 @@ def iter_decoded_tiles(
     model: a CompressionModel, a name or path (default: the model id stored in the file); its weights must match
     the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
     read and decoded, and the output is cropped to it. density / n_points / max_tile_points: see `target_counts`.
-    Payloads are read here and decoded by `workers` processes (None: one per core) or on the Dask cluster at
+    Payloads are read here and decoded by `workers` threads (None: one per core) or on the Dask cluster at
     `dask_scheduler` (`codec.executor`); the points are the same whatever runs them.
     """
     for cloud in iter_decoded_clouds(source, model, bbox, density, n_points, progress, max_tile_points,
@@ -273,7 +274,6 @@ def iter_tile_points(
         box = None if bbox is None else parse_bbox(bbox)
         selected = [position for position, entry in enumerate(reader.entries)
                     if box is None or _intersects(tile_world_bounds(header, entry), box)]
-        start_pool_server(workers, dask_scheduler, len(selected), WORKER_MODULES)  # imports while the model loads
         counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points, max_tile_points)
         if any(reader.entries[p].coding is TileCoding.network for p in selected):
             model = _load_matching_model(model, header, reader.name)
@@ -288,7 +288,7 @@ def iter_tile_points(
                     for position, count in jobs)
         support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
         context = (header, model, max_tile_points, support)
-        executor = open_executor(workers, dask_scheduler, context, len(jobs), WORKER_MODULES)
+        executor = open_executor(workers, dask_scheduler, context, len(jobs), threads=True)
         try:
             decoded = executor.map(_decode_job, context, payloads)
             for done, (position, count) in enumerate(zip(selected, counts), start=1):

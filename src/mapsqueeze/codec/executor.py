@@ -1,4 +1,5 @@
-"""Where per-tile jobs run: in this process, in local worker processes, or on a Dask cluster, behind one interface.
+"""Where per-tile jobs run: in this process, in threads of it (decoding), in local worker processes (encoding), or
+on a Dask cluster, behind one interface.
 
 Every executor maps a module-level `function(context, item)` over items and yields the results in input order,
 with at most a few items per worker submitted ahead of the one being yielded (memory: one tile per worker plus the
@@ -16,7 +17,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 from mapsqueeze.errors import MapsqueezeError
-from mapsqueeze.geometry.threads import set_threads
+from mapsqueeze.geometry.threads import one_blas_thread, set_threads
 
 TileFunction = Callable[[Any, Any], Any]
 
@@ -59,6 +60,35 @@ class SerialExecutor:
 
     def close(self, abort: bool = False) -> None:
         pass
+
+
+class ThreadExecutor:
+    """A pool of `workers` threads of this process, for jobs that spend their time in numpy and BLAS calls, which
+    release the GIL (decoding: the numpy decoder and post-filters): no process to start, no module imported again,
+    the context shared instead of copied, the results handed over without pickling. numpy's matrix products stay
+    on one BLAS thread while the pool is open (`one_blas_thread`, entered by the thread that opens it: threadpoolctl
+    lets one thread at a time set OpenBLAS's process-wide count), so each job's bytes are the serial run's. This
+    process keeps freed memory for the next tile from then on, as pool workers do (`_keep_freed_memory`)."""
+
+    def __init__(self, workers: int):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.workers = workers
+        _keep_freed_memory()
+        self._blas = one_blas_thread()
+        self._blas.__enter__()
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="mapsqueeze-decode")
+
+    def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
+        return _ordered(lambda item: self._pool.submit(function, context, item), items,
+                        IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
+
+    def close(self, abort: bool = False) -> None:
+        """Wait for the running jobs (a thread cannot be stopped) after dropping the queued ones."""
+        try:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        finally:
+            self._blas.__exit__(None, None, None)
 
 
 class ProcessExecutor:
@@ -121,18 +151,20 @@ class DaskExecutor:
             self._cluster.close()
 
 
-Executor = SerialExecutor | ProcessExecutor | DaskExecutor
+Executor = SerialExecutor | ThreadExecutor | ProcessExecutor | DaskExecutor
 
 
 def open_executor(workers: int | None, dask_scheduler: str | None, context: Any, n_jobs: int,
-                  preload: Sequence[str] = ()) -> Executor:
-    """The executor for a run of n_jobs tile jobs: Dask when a scheduler address is given, a process pool for
-    several workers and jobs (`preload`: see ProcessExecutor), else this process. workers None: one per core."""
+                  preload: Sequence[str] = (), threads: bool = False) -> Executor:
+    """The executor for a run of n_jobs tile jobs: Dask when a scheduler address is given, for several workers and
+    jobs a pool of threads (`threads`: jobs that release the GIL) or else of processes (`preload`: see
+    ProcessExecutor), else this process. workers None: one per core."""
     workers = default_workers() if workers is None else check_workers(workers)
     if dask_scheduler:
         return DaskExecutor(dask_scheduler, workers)
     if workers > 1 and n_jobs > 1:
-        return ProcessExecutor(min(workers, n_jobs), context, preload)
+        return ThreadExecutor(min(workers, n_jobs)) if threads else ProcessExecutor(min(workers, n_jobs), context,
+                                                                                     preload)
     return SerialExecutor()
 
 
