@@ -28,7 +28,7 @@ children depend on it alone), so its activations (~10 MB) mostly stay in the CPU
 (BLAS rounds some products of few rows differently in the last bits: the group size is part of the output.)"""
 
 LEAKY_BLOCK_ELEMENTS = 1 << 16
-"""Elements per pass of the in-place LeakyReLU (256 KB of float32 temporary)."""
+"""Elements per pass of the in-place bias and LeakyReLU (256 KB of float32 temporary)."""
 
 Affine = tuple[np.ndarray, np.ndarray]
 """(W (in, out), b (out,)) float32: x -> x @ W + b."""
@@ -83,19 +83,22 @@ def _affine(x: np.ndarray, layer: Affine) -> np.ndarray:
 
 
 def _affine_leaky_relu(x: np.ndarray, layer: Affine, slope: np.float32) -> np.ndarray:
-    """LeakyReLU(x @ W + b)."""
-    out = _affine(x, layer)
-    _leaky_relu(out, slope)
+    """LeakyReLU(x @ W + b): the bias added and the activation applied in one pass over the product
+    (`_bias_leaky_relu`)."""
+    out = x @ layer[0]
+    _bias_leaky_relu(out, layer[1], slope)
     return out
 
 
-def _leaky_relu(x: np.ndarray, slope: np.float32) -> None:
-    """In place: max(x, slope * x), which is LeakyReLU for 0 < slope < 1 (the same bits as x if x > 0 else
-    slope * x), in row blocks whose temporary stays in the CPU's cache."""
+def _bias_leaky_relu(x: np.ndarray, bias: np.ndarray, slope: np.float32) -> None:
+    """In place: x + b, then max(x, slope * x), which is LeakyReLU for 0 < slope < 1 (the same bits as x if x > 0
+    else slope * x), in row blocks that stay in the CPU's cache between the three operations (and so does their
+    temporary)."""
     rows = max(1, LEAKY_BLOCK_ELEMENTS // max(1, x.shape[1]))
     scaled = np.empty((min(rows, len(x)), x.shape[1]), dtype=x.dtype)
     for start in range(0, len(x), rows):
         block = x[start:start + rows]
+        block += bias
         np.multiply(block, slope, out=scaled[:len(block)])
         np.maximum(block, scaled[:len(block)], out=block)
 
