@@ -27,7 +27,7 @@ from mapsqueeze.codec.tilepoints import keep_inside
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry import occupancy
 from mapsqueeze.geometry.occupancy import patch_option_ious
-from mapsqueeze.geometry.patches import patch_options, patch_planes
+from mapsqueeze.geometry.patches import patch_option_cells, patch_options, patch_planes
 from mapsqueeze.metrics import IOU_VOXEL_M, iou
 from mapsqueeze.model import load_model
 
@@ -62,10 +62,7 @@ def test_per_patch_choices_beat_every_single_setting_and_the_search_reports_the_
     assert chosen > max(singles) + 0.02
     assert set(choices[0::2]) != set(choices[1::2])  # the exact and the thick patches get different options
     start = np.zeros(len(choices), dtype=np.int64)
-    options = [apply_patch_choices(decoded[i * 256:(i + 1) * 256], [option], FACTORS, EXTENT)
-               for option in range(len(PATCH_OPTIONS)) for i in range(len(choices))]
-    ends = np.cumsum([len(cloud) for cloud in options])
-    found, before, after = patch_option_ious(original, np.concatenate(options), ends, EXTENT, start, FRAME,
+    found, before, after = patch_option_ious(original, decoded, 256, PATCH_OPTIONS, EXTENT, start, FRAME,
                                              IOU_VOXEL_M, 3)
     assert np.array_equal(found, choices)
     assert before == pytest.approx(iou(original, keep_inside(decoded, EXTENT).astype(np.float64) + FRAME), abs=1e-12)
@@ -94,20 +91,39 @@ def test_patch_options_give_the_bytes_of_each_patch_reworked_alone():
     assert not np.array_equal(whole[512 * 1:512 * 2], expected[4 * n + 1])
 
 
+def test_patch_option_cells_are_the_distinct_voxels_of_the_reworked_points():
+    """The cells the search reads are those of `patch_options`'s points (float32, voxel floor((p + frame) / voxel)),
+    each patch's under each option once, in order of first appearance."""
+    _, decoded = mixed_patches()
+    decoded = decoded[:256 * 20]
+    voxel = np.asarray(IOU_VOXEL_M)
+    low = np.floor(FRAME / voxel).astype(np.int64) - 2
+    shape = np.floor((EXTENT + FRAME) / voxel).astype(np.int64) - low + 3
+    for patch in (256, 1):  # single-point patches: more lists than points
+        points, ends = patch_options(decoded, patch, PATCH_OPTIONS, EXTENT)
+        cells, offsets = patch_option_cells(decoded, patch, PATCH_OPTIONS, EXTENT, FRAME, voxel, low, shape)
+        voxels = np.floor((points.astype(np.float64) + FRAME) / voxel).astype(np.int64) - low
+        linear = (voxels[:, 0] * shape[1] + voxels[:, 1]) * shape[2] + voxels[:, 2]
+        assert len(offsets) == len(ends) + 1 and offsets[-1] == len(cells) > (len(decoded) if patch == 1 else 0)
+        for entry, (begin, end) in enumerate(zip(np.concatenate([[0], ends[:-1]]), ends)):
+            distinct = list(dict.fromkeys(linear[begin:end].tolist()))
+            assert cells[offsets[entry]:offsets[entry + 1]].tolist() == distinct
+
+
 def test_the_search_grid_spans_the_tile_box_unless_too_large(monkeypatch):
     """The voxel grid of the tile box [0, extent] gives the choices of the points' own box; when the tile box
     holds more voxels than the grid's limit, the points' own box decides whether the search runs."""
     original, decoded = mixed_patches()
-    points, ends = patch_options(decoded, 256, PATCH_OPTIONS, EXTENT)
     start = np.zeros(len(decoded) // 256, dtype=np.int64)
-    found = patch_option_ious(original, points, ends, EXTENT, start, FRAME, IOU_VOXEL_M, 3)
-    far = np.array([1000.0, 1000.0, 1000.0])  # a 5000 x 5000 x 10000 voxel box: the points' own box is used
-    assert all(np.array_equal(a, b) for a, b in zip(patch_option_ious(original, points, ends, far, start, FRAME,
-                                                                      IOU_VOXEL_M, 3), found))
+
+    def search(upper):
+        return patch_option_ious(original, decoded, 256, PATCH_OPTIONS, upper, start, FRAME, IOU_VOXEL_M, 3)
+
+    found = search(EXTENT)
     monkeypatch.setattr(occupancy, "_MAX_OCCUPANCY_VOXELS", 100_000)  # tile box 61 x 61 x 41, points' 60 x 60 x 8
-    assert patch_option_ious(original, points, ends, EXTENT, start, FRAME, IOU_VOXEL_M, 3)[2] == found[2]
+    assert all(np.array_equal(a, b) for a, b in zip(search(EXTENT), found))
     monkeypatch.setattr(occupancy, "_MAX_OCCUPANCY_VOXELS", 20_000)
-    assert patch_option_ious(original, points, ends, EXTENT, start, FRAME, IOU_VOXEL_M, 3) is None
+    assert search(EXTENT) is None
 
 
 def test_choices_are_left_off_where_they_do_not_pay():

@@ -323,13 +323,11 @@ def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
     original_world: the tile's (N, 3) points in world metres; uncropped: the network's whole (K, 3) output for the
     embedding the decoder sees, in its order, tile-local metres relative to the world point `frame_m`."""
     from mapsqueeze.geometry.occupancy import patch_option_ious  # numba: loaded only where choices are searched
-    from mapsqueeze.geometry.patches import patch_options
 
     patch = int(np.prod(upsampling_factors, dtype=np.int64))  # the points of one embedding point
-    points, ends = patch_options(uncropped, patch, PATCH_OPTIONS, extent_m)
     start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)
-    found = patch_option_ious(original_world, points, ends, extent_m, start, frame_m, IOU_VOXEL_M,
-                              PATCH_CHOICE_SWEEPS)
+    found = patch_option_ious(original_world, uncropped, patch, PATCH_OPTIONS, extent_m, start, frame_m,
+                              IOU_VOXEL_M, PATCH_CHOICE_SWEEPS)
     if found is None:
         return None
     choices, before, after = found

@@ -8,6 +8,7 @@ import numpy as np
 
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.jit import compiled
+from mapsqueeze.geometry.patches import patch_option_cells, patch_options
 
 
 _MAX_OCCUPANCY_VOXELS = 1 << 26
@@ -56,37 +57,35 @@ def _mark_voxels(points, frame, voxel, low, shape, bit, grid):
         grid[(x * shape[1] + y) * shape[2] + z] |= bit
 
 
-def patch_option_ious(original: np.ndarray, points: np.ndarray, ends: np.ndarray, upper: np.ndarray,
+def patch_option_ious(original: np.ndarray, uncropped: np.ndarray, patch: int, options, upper: np.ndarray,
                       start: np.ndarray, frame_m: np.ndarray, voxel_m: tuple[float, float, float], sweeps: int
                       ) -> tuple[np.ndarray, float, float] | None:
     """(choice per patch, IoU of `start`, IoU of the choices) of a greedy search for the option of each patch that
     maximises the occupancy-grid IoU (as `metrics.iou`) of the union of the patches' points with `original`.
 
-    original: (N, 3) world metres; points: float32 tile-local points (relative to the world point frame_m), inside
-    the box [0, upper] (metres), of every patch under every option, option after option, patch after patch within
-    (`patches.patch_options`); ends[k n + i]: the row after patch i's points under option k; start: (n,) the first
-    choice of each patch. Each sweep visits the patches in order and gives each the option (ties: its current one,
-    then the lowest) that maximises the IoU with every other patch as chosen; it stops after `sweeps` sweeps or one
-    that changes nothing. None when the voxel box of the original and the points holds more than
-    _MAX_OCCUPANCY_VOXELS voxels. The grid spans the original and the box [0, upper] (no scan of the points),
-    unless that holds too many voxels."""
+    original: (N, 3) world metres; uncropped: a decoded cloud (tile-local, relative to the world point frame_m) of
+    patches of `patch` points, each reworked under each of `options` and cropped to the box [0, upper] (metres) as
+    `patches.patch_options` does; start: (n,) the first choice of each patch. Each sweep visits the patches in order
+    and gives each the option (ties: its current one, then the lowest) that maximises the IoU with every other
+    patch as chosen; it stops after `sweeps` sweeps or one that changes nothing. None when the voxel box of the
+    original and the reworked points holds more than _MAX_OCCUPANCY_VOXELS voxels. The grid spans the original and
+    the box [0, upper], unless that holds too many voxels; the reworked points are reduced to each patch's distinct
+    voxels as they are made (`patches.patch_option_cells`), never stored."""
     frame_m = np.asarray(frame_m, dtype=np.float64)
     voxel = np.asarray(voxel_m, dtype=np.float64)
     upper_m = np.asarray(upper).astype(np.float32).astype(np.float64)  # the float32 box of the points
     low, shape = _voxel_box(list(bounding_box(original)) + [frame_m, upper_m + frame_m], voxel)
-    if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:  # the points' own box decides
+    if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:  # the reworked points' own box decides
+        points = patch_options(uncropped, patch, options, upper)[0]
         corners = [corner.astype(np.float64) + frame_m for corner in bounding_box(points)] if len(points) else []
         low, shape = _voxel_box(list(bounding_box(original)) + corners, voxel)
         if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:
             return None
     grid = np.zeros(int(np.prod(shape)), dtype=np.uint8)
     _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
-    cells = np.empty(len(points), dtype=np.int32)  # _MAX_OCCUPANCY_VOXELS < 2^31
-    offsets = np.zeros(len(ends) + 1, dtype=np.int64)
-    _voxel_cells(points, ends, frame_m, voxel, low, shape, np.full(len(grid), -1, dtype=np.int32), cells, offsets)
+    cells, offsets = patch_option_cells(uncropped, patch, options, upper, frame_m, voxel, low, shape)
     choice = np.array(start, dtype=np.int64)
-    n_options = len(ends) // len(choice) if len(choice) else 0
-    before, after = _greedy_choices(grid, cells, offsets, n_options, len(choice), choice, sweeps)
+    before, after = _greedy_choices(grid, cells, offsets, len(options), len(choice), choice, sweeps)
     return choice, before, after
 
 
@@ -94,30 +93,6 @@ def _voxel_box(corners: list[np.ndarray], voxel: np.ndarray) -> tuple[np.ndarray
     """(lowest voxel, shape in voxels) of the box of the IoU voxels of these world-metre corners."""
     low = np.floor(np.min(corners, axis=0) / voxel).astype(np.int64)
     return low, np.floor(np.max(corners, axis=0) / voxel).astype(np.int64) - low + 1
-
-
-@compiled
-def _voxel_cells(points, ends, frame, voxel, low, shape, seen, cells, offsets):
-    """The distinct grid cells of each patch's IoU voxels (as `_mark_voxels`) under each option: list l (option
-    k, patch i: l = k n + i) holds points[ends[l - 1]:ends[l]] (from 0 for l = 0), its cells written to
-    cells[offsets[l]:offsets[l + 1]]. seen: -1 per grid cell (a work array)."""
-    n = 0
-    begin = 0
-    for entry in range(ends.shape[0]):
-        first = n
-        for i in range(begin, ends[entry]):  # no branch: vectorised
-            x = np.int64(np.floor((np.float64(points[i, 0]) + frame[0]) / voxel[0])) - low[0]
-            y = np.int64(np.floor((np.float64(points[i, 1]) + frame[1]) / voxel[1])) - low[1]
-            z = np.int64(np.floor((np.float64(points[i, 2]) + frame[2]) / voxel[2])) - low[2]
-            cells[first + i - begin] = (x * shape[1] + y) * shape[2] + z
-        for i in range(first, first + ends[entry] - begin):
-            cell = cells[i]
-            if seen[cell] != entry:
-                seen[cell] = entry
-                cells[n] = cell
-                n += 1
-        begin = ends[entry]
-        offsets[entry + 1] = n
 
 
 @compiled
