@@ -612,11 +612,12 @@ def test_cli_round_trip_and_errors(tmp_path, map_points, model_dir, monkeypatch,
 
 def test_streaming_refuses_an_overfull_tile_before_reading_it_back(model, tmp_path, monkeypatch):
     from mapsqueeze.codec import compress as compress_module
+    from mapsqueeze.codec import tilejobs
 
-    monkeypatch.setattr(compress_module, "MAX_POINTS_PER_TILE", 1000)
+    monkeypatch.setattr(tilejobs, "MAX_POINTS_PER_TILE", 1000)
     source = tmp_path / "map.npy"
     np.save(source, make_map())
-    monkeypatch.setattr(compress_module, "_encode_tile", lambda *a: pytest.fail("tile read back and encoded"))
+    monkeypatch.setattr(compress_module, "embed_job", lambda *a: pytest.fail("tile read back and encoded"))
     with pytest.raises(InvalidPointCloudError, match="more than the 1,000"):
         mapsqueeze.compress_file(source, tmp_path / "map.msq", model=model)
 
@@ -687,7 +688,8 @@ def test_own_leaf_distances_are_the_nearest_leaf_distances_wherever_known(leaf):
 
 def test_candidate_distortion_estimates_on_samples_and_is_exact_where_candidates_are_close():
     """D_e estimates from SAMPLE_POINTS points a side are within 2 % of the exact D_e; candidates whose estimates
-    are close get exact values, the others keep their estimates; exact=True gives d_euclidean throughout."""
+    are close get exact values, the others (and those only close to candidates that do not compete) keep their
+    estimates; exact=True gives d_euclidean throughout."""
     from mapsqueeze.codec.distortion import SAMPLE_POINTS, CandidateDistortion, sample_indices
     from mapsqueeze.metrics import d_euclidean
 
@@ -705,6 +707,7 @@ def test_candidate_distortion_estimates_on_samples_and_is_exact_where_candidates
     for decoded in noisy:
         together.add(decoded)
     assert together.settle() == [exact[0], exact[1], estimates[2]]  # the first two are within CLOSE
+    assert together.settle([True, False, True]) == estimates  # the second does not compete: no close pair left
     exactly = CandidateDistortion(tile, exact=True)
     for decoded in noisy:
         exactly.add(decoded)

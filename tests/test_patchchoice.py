@@ -18,9 +18,10 @@ from mapsqueeze.codec.postfilter import (
     apply_patch_choices,
     apply_patch_filter,
     check_setting,
-    choose_patch_choices,
     decode_patch_choices,
     encode_patch_choices,
+    patch_choice_prefix,
+    search_patch_choices,
     split_patch_choices,
 )
 from mapsqueeze.codec.tilepoints import keep_inside
@@ -53,18 +54,17 @@ def mixed_patches(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def test_per_patch_choices_beat_every_single_setting_and_the_search_reports_the_metric():
     original, decoded = mixed_patches()
-    choices = choose_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, 10_000)
-    assert choices is not None and len(choices) == len(decoded) // 256
+    search = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF)
+    choices = search.choices
+    assert patch_choice_prefix(search, 10_000) == encode_patch_choices(choices)
+    assert len(choices) == len(decoded) // 256
     cloud = apply_patch_choices(decoded, choices, FACTORS, EXTENT)
     chosen = iou(original, cloud.astype(np.float64) + FRAME)
     singles = [iou(original, apply_patch_filter(decoded, byte, FACTORS, EXTENT).astype(np.float64) + FRAME)
                for byte in PATCH_CANDIDATES] + [iou(original, keep_inside(decoded, EXTENT).astype(np.float64) + FRAME)]
     assert chosen > max(singles) + 0.02
     assert set(choices[0::2]) != set(choices[1::2])  # the exact and the thick patches get different options
-    start = np.zeros(len(choices), dtype=np.int64)
-    found, before, after = patch_option_ious(original, decoded, 256, PATCH_OPTIONS, EXTENT, start, FRAME,
-                                             IOU_VOXEL_M, 3)
-    assert np.array_equal(found, choices)
+    before, after = search.before, search.after
     assert before == pytest.approx(iou(original, keep_inside(decoded, EXTENT).astype(np.float64) + FRAME), abs=1e-12)
     assert after == pytest.approx(chosen, abs=1e-12)
 
@@ -130,8 +130,8 @@ def test_choices_are_left_off_where_they_do_not_pay():
     """A decode equal to the original gains nothing; a tiny payload makes the stream cost more than it gains."""
     original, decoded = mixed_patches()
     exact = (original - FRAME).astype(np.float32)
-    assert choose_patch_choices(original, exact, FACTORS, FRAME, EXTENT, OFF, 10_000) is None
-    assert choose_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, 1) is None
+    assert patch_choice_prefix(search_patch_choices(original, exact, FACTORS, FRAME, EXTENT, OFF), 10_000) is None
+    assert patch_choice_prefix(search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF), 1) is None
     assert IOU_PER_LOG_RATE == 0.12
 
 

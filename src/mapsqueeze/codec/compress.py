@@ -17,50 +17,38 @@ from mapsqueeze.codec.attributes import (
     build_schema,
     parse_selection,
 )
-from mapsqueeze.codec.distortion import CandidateDistortion
 from mapsqueeze.codec.container import (
-    BOUNDS_STEPS,
-    MAX_POINTS_PER_TILE,
     AttributeSection,
     DefaultCount,
     Header,
     TileCoding,
     TileRecord,
-    frame_origin,
-    quantise_bounds,
     serialise_container,
 )
 from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
+from mapsqueeze.codec.entropy import ByteWriter
 from mapsqueeze.codec.executor import ProgressCallback, open_executor, start_pool_server
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
-from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, own_leaf_distances
-from mapsqueeze.codec.rawtile import RAW_STEP_M, decode_raw_tile, encode_raw_tile
-from mapsqueeze.codec.patchchoice import PatchChooser
-from mapsqueeze.codec.postfilter import OFF, choose_patch_filter, choose_post_filter
+from mapsqueeze.codec.postfilter import OFF, PATCH_CHOICES, patch_choice_prefix
+from mapsqueeze.codec.rawtile import RAW_STEP_M
 from mapsqueeze.codec.tileattributes import AttributeCoder
-from mapsqueeze.codec.tilepoints import keep_inside, network_points, octree_points
+from mapsqueeze.codec.tilejobs import EncodedTile, TileJob, candidates_job, check_tile_size, embed_job
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
-from mapsqueeze.geometry.tiling import fit_grid, tile_map, to_local
+from mapsqueeze.geometry.tiling import fit_grid, tile_map
 from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.io import PointCloud, validate_attributes, work_dir
 
-WORKER_MODULES = ("mapsqueeze.codec.compress", "mapsqueeze.model.compression", "mapsqueeze.geometry.grid",
-                  "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells", "mapsqueeze.codec.compressworker")
+WORKER_MODULES = ("mapsqueeze.codec.compress", "mapsqueeze.codec.tilejobs", "mapsqueeze.model.compression",
+                  "mapsqueeze.geometry.grid", "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells",
+                  "mapsqueeze.codec.compressworker")
 """What compressing workers import (`codec.executor.ProcessExecutor`'s preload): the numpy network, the octree
 coder, numba and its kernels, with numba's compiler started (`compressworker`)."""
 
-RAW_POINTS_PER_EMBEDDING = 4
-"""A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
-embedding point into hundreds of points of a dense surface, fits such sparse tiles poorly."""
-
-RAW_CANDIDATE_POINTS_PER_EMBEDDING = 20
-"""Raw coding is also tried (and kept when smaller) for tiles with up to this many points per embedding point;
-beyond it raw coding (>= 13 bits a point) cannot beat even f32 embeddings (192 bits per embedding point)."""
-
 MAX_REFINE_STEPS = 10_000
 """Encode-time refinement steps accepted at most per tile (`CompressionModel.refine`; a guard against typos)."""
+
 
 @dataclass(frozen=True)
 class AttributeOptions:
@@ -88,28 +76,6 @@ def _attribute_schema(ranges: dict[str, tuple[np.dtype, float, float]], metadata
 
 def _ranges(attributes: dict[str, np.ndarray]) -> dict[str, tuple[np.dtype, float, float]]:
     return {name: (values.dtype, float(values.min()), float(values.max())) for name, values in attributes.items()}
-
-
-@dataclass
-class _EncodedTile:
-    """One tile while the map is being compressed: its table fields, embedding and candidate codings."""
-
-    index: tuple[int, int, int]
-    n_points: int
-    bounds_lo: tuple[int, int, int]
-    bounds_hi: tuple[int, int, int]
-    extent_m: np.ndarray  # size of the tile's bounds box (metres)
-    points: np.ndarray | None  # network embedding (None when the network is no candidate: too sparse)
-    features: np.ndarray | None
-    candidates: list[Candidate]  # classical ones at first; the network's is added once coded
-    network_d_e: float | None = None  # metres: D_e of the network's output for the (unquantised) embedding
-    post_filter: int = OFF  # the network output's decode post-filter (`codec.postfilter`)
-    choice: Candidate | None = None
-
-    def record(self) -> TileRecord:
-        network = self.choice.coding is TileCoding.network
-        return TileRecord(self.index, self.n_points, self.bounds_lo, self.bounds_hi, self.choice.coding,
-                          self.choice.payload, self.post_filter if network else OFF)
 
 
 def compress_map(
@@ -216,7 +182,7 @@ def compress_chunks(
             raise InvalidPointCloudError("map: the input changed between the two reading passes")
         indices = sorted(counts)  # the order of tile_map: by (i, j, k)
         for index in indices:  # refused before a tile that large is read back into memory
-            _check_tile_size(index, counts[index])
+            check_tile_size(index, counts[index])
 
         def tile_points():
             return ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3),
@@ -253,12 +219,6 @@ def check_refine_steps(steps: int) -> None:
         raise MapsqueezeError(f"refinement steps must be an integer from 0 to {MAX_REFINE_STEPS}, got {steps!r}")
 
 
-def _check_tile_size(index: tuple[int, int, int], n_points: int) -> None:
-    if n_points > MAX_POINTS_PER_TILE:
-        raise InvalidPointCloudError(
-            f"tile {index} holds {n_points:,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may hold")
-
-
 def _spill_name(index: tuple[int, int, int], attribute: int | None = None) -> str:
     """Spill file of a tile's float64 points, or of its attribute number `attribute`."""
     suffix = "f64" if attribute is None else f"a{attribute}"
@@ -290,17 +250,16 @@ def _compress_tiles(
             if progress:
                 progress(offset + done, len(models) * n_tiles)
 
-        encoded = _encode_tiles(tile_source(), n_tiles, origin, model, refine_steps, target, workers,
-                                dask_scheduler, tile_progress)
+        encoded = _embed_tiles(tile_source(), n_tiles, origin, model, refine_steps, workers, dask_scheduler)
+        latent = _fit_latent(encoded, model, precision, position_step_m, feature_step_std)
+        _tile_candidates(encoded, tile_source(), origin, model, latent, target, workers, dask_scheduler,
+                         tile_progress)
         streams = AttributeCoder(tile_source, model, schema, workers, dask_scheduler)
-        latent = _code_network_candidates(encoded, model, precision, position_step_m, feature_step_std)
         weights = [tile.n_points for tile in encoded]
         if target.bpp is None:
             choices = [choose_for_error(tile.candidates, target.max_error_m) if target.max_error_m is not None
                        else choose(tile.candidates, _network_bytes(tile)) for tile in encoded]
-            per_patch = (PatchChooser(tile_source, workers, dask_scheduler, WORKER_MODULES)
-                         if target.post_filter == "patch" and not target.given else None)
-            data = _assemble(encoded, choices, model, latent, origin, n_points, streams, per_patch)
+            data = _assemble(encoded, choices, model, latent, origin, n_points, streams)
         else:  # the payload budget is what the file may hold less the header and table of the last attempt
             target_bytes = target.bpp * n_points / 8
             budget = target_bytes
@@ -322,17 +281,27 @@ _RATE_ATTEMPTS = 4
 """Choices tried under a --bpp budget, each with the payload budget shrunk by the previous file's excess."""
 
 
-def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, latent: LatentCodec,
-              origin: np.ndarray, n_points: int, attributes: AttributeCoder,
-              patch_chooser: PatchChooser | None = None) -> bytes:
+def _assemble(encoded: list[EncodedTile], choices: list[Candidate], model, latent: LatentCodec,
+              origin: np.ndarray, n_points: int, attributes: AttributeCoder) -> bytes:
     """The container of the chosen codings (the latent codec refitted over the tiles that kept the network), with
-    the attribute section `attributes` codes on their decoded geometry; with patch choices where they pay when a
-    `patch_chooser` is given."""
+    the attribute section `attributes` codes on their decoded geometry; with patch choices where they were searched
+    and pay (`postfilter.patch_choice_prefix`: the choice stream put before the tile's payload, its post-filter
+    PATCH_CHOICES; the mode decision was made on the payload without the stream, which adds 7-10 % to the file on
+    the real submaps)."""
     for tile, choice in zip(encoded, choices):
         tile.choice = choice
     latent = _recode_chosen(encoded, latent)
-    if patch_chooser is not None:
-        patch_chooser(encoded, model, latent, origin)
+    records = []
+    for tile in encoded:
+        choice, post_filter = tile.choice, tile.post_filter
+        if choice.coding is TileCoding.network and tile.patch_choices is not None:
+            prefix = patch_choice_prefix(tile.patch_choices, choice.n_bytes)
+            if prefix is not None:
+                payload = prefix + choice.payload
+                choice = Candidate(TileCoding.network, payload, len(payload), choice.d_e, choice.label)
+                post_filter = PATCH_CHOICES
+        records.append(TileRecord(tile.index, tile.n_points, tile.bounds_lo, tile.bounds_hi, choice.coding,
+                                  choice.payload, post_filter if choice.coding is TileCoding.network else OFF))
     layout = latent.layout
     header = Header(
         model_id=model.model_id,
@@ -348,7 +317,6 @@ def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, late
         latent=latent,
         default_count=DefaultCount.native,
     )
-    records = [tile.record() for tile in encoded]
     geometry = serialise_container(header, records)
     if attributes.schema is None:
         return geometry
@@ -356,124 +324,62 @@ def _assemble(encoded: list[_EncodedTile], choices: list[Candidate], model, late
     return serialise_container(header, records, section)
 
 
-@dataclass(frozen=True)
-class _TileJob:
-    """What every tile's encoding shares (sent once to each worker)."""
-
-    model: object
-    origin: np.ndarray  # float64 world corner of the tile grid (metres)
-    tile_size: np.ndarray
-    refine_steps: int
-    target: RateTarget
-
-
-def _encode_job(job: _TileJob, item: tuple[tuple[int, int, int], np.ndarray, dict]) -> _EncodedTile:
-    """One tile's job: (tile index, its float64 world points, its attributes) -> its embedding and classical
-    candidates (attributes are coded once the tile's coding is chosen, `codec.tileattributes`)."""
-    index, points, _ = item
-    tile_origin = job.origin + np.asarray(index) * job.tile_size
-    return _encode_tile(index, tile_origin, points, job.tile_size, job.model, job.refine_steps, job.target)
-
-
-def _network_bytes(tile: _EncodedTile) -> int | None:
+def _network_bytes(tile: EncodedTile) -> int | None:
     network = [c for c in tile.candidates if c.coding is TileCoding.network]
     return network[0].n_bytes if network else None
 
 
-def _encode_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,
-                  origin: np.ndarray, model, refine_steps: int, target: RateTarget, workers: int | None,
-                  dask_scheduler: str | None, progress: ProgressCallback) -> list[_EncodedTile]:
-    """Every tile's candidates with one model, encoded by `workers` processes or a Dask cluster (`codec.executor`)."""
-    tile_size = np.asarray(model.config.tile_size, dtype=np.float64)
-    encoded = []
-    job = _TileJob(model, origin, tile_size, refine_steps, target)
-    executor = open_executor(workers, dask_scheduler, job, n_tiles, WORKER_MODULES)
+def _embed_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,
+                 origin: np.ndarray, model, refine_steps: int, workers: int | None,
+                 dask_scheduler: str | None) -> list[EncodedTile]:
+    """Every tile's embedding with one model, by `workers` processes or a Dask cluster (`codec.executor`)."""
+    job = TileJob(model, origin, np.asarray(model.config.tile_size, dtype=np.float64), refine_steps)
+    return _run(embed_job, job, tile_points, n_tiles, workers, dask_scheduler, lambda done, total: None)
+
+
+def _run(function, job: TileJob, items: Iterable, n_jobs: int, workers: int | None, dask_scheduler: str | None,
+         progress: ProgressCallback) -> list:
+    """function(job, item) of every item, in order, on the executor `workers` / `dask_scheduler` open."""
+    results = []
+    executor = open_executor(workers, dask_scheduler, job, n_jobs, WORKER_MODULES)
     try:
-        for done, tile in enumerate(executor.map(_encode_job, job, tile_points), start=1):
-            encoded.append(tile)
-            progress(done, n_tiles)
+        for done, result in enumerate(executor.map(function, job, items), start=1):
+            results.append(result)
+            progress(done, n_jobs)
     finally:
         executor.close(abort=sys.exc_info()[0] is not None)
-    return encoded
+    return results
 
 
-def _encode_tile(index: tuple[int, int, int], tile_origin: np.ndarray, tile_points: np.ndarray,
-                 tile_size: np.ndarray, model, refine_steps: int, target: RateTarget = RateTarget()) -> _EncodedTile:
-    """The tile's embedding and its classical candidates, each with its payload and D_e: raw when the tile is sparse
-    enough for raw coding to compete or a rate target is given, the octree at each leaf of OCTREE_LEAVES_M unless
-    the target forbids the fallback; the network's decode post-filter setting (chosen on the decode of the
-    unquantised embedding, none under post-filter "off") and the network's D_e: that of the filtered decode, except
-    under the default patch planes without a rate target, where it is the unfiltered decode's (the filter moves D_e
-    by -2 to +5 % on the real submaps; this spares a nearest-neighbour search over 2-3 times the points, and the
-    tiles' codings are those of post-filter "off"). D_e values are `codec.distortion`'s: estimated on samples, exact
-    where two are close, exact throughout under a rate target or with the neighbour-plane post-filter ("auto")."""
-    _check_tile_size(index, len(tile_points))
-    lo, hi = quantise_bounds(tile_points - tile_origin, tile_size)
-    local = to_local(tile_points, frame_origin(tile_origin, lo, tile_size), tile_size)
-    extent = np.subtract(hi, lo) * tile_size / BOUNDS_STEPS
-    embedding = model.encode(local)
-    n_embedding = len(embedding.points)
-    distortion = CandidateDistortion(local, exact=target.given or target.post_filter == "auto")
-    classical = []  # (coding, payload, label) in the order their decodings were added to `distortion`
-    if target.given or len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
-        raw = encode_raw_tile(local, tile_size)
-        distortion.add(decode_raw_tile(raw, tile_size, len(local), "raw candidate"))
-        classical.append((TileCoding.raw, raw, "raw"))
-    if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:  # too sparse for the network and the octree
-        return _EncodedTile(index, len(local), lo, hi, extent, None, None, _candidates(classical, distortion.settle()))
-    leaves = OCTREE_LEAVES_M if target.fallback else ()
-    for leaf, (payload, centres) in zip(leaves, encode_octree_tiles(local, tile_size, leaves)):
-        distortion.add(octree_points(centres, extent, None),
-                       lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent))
-        classical.append((TileCoding.octree, payload, f"octree {leaf:g} m"))
-    if refine_steps:
-        embedding = model.refine(local, embedding, refine_steps)
-    post_filter = OFF
-    if target.post_filter == "auto":
-        post_filter, network_d_e = choose_post_filter(
-            local, network_points(model, embedding.points, embedding.features, extent, None),
-            frame_origin(tile_origin, lo, tile_size), lambda cloud: keep_inside(cloud, extent))
-        d_e = distortion.settle()
-    else:
-        if target.post_filter == "patch":
-            frame = frame_origin(tile_origin, lo, tile_size)
-            uncropped = model.decode(embedding.points, embedding.features)
-            decoded = keep_inside(uncropped, extent)
-            post_filter, filtered = choose_patch_filter(local + frame, uncropped, decoded,
-                                                        model.config.upsampling_factors, frame, extent)
-            if target.given:
-                decoded = filtered
-        else:
-            decoded = network_points(model, embedding.points, embedding.features, extent, None)
-        distortion.add(decoded)
-        *d_e, network_d_e = distortion.settle()
-    return _EncodedTile(index, len(local), lo, hi, extent, embedding.points, embedding.features,
-                        _candidates(classical, d_e), network_d_e, post_filter)
-
-
-def _candidates(classical: list[tuple[TileCoding, bytes, str]], d_e: list[float]) -> list[Candidate]:
-    return [Candidate(coding, payload, len(payload), value, label)
-            for (coding, payload, label), value in zip(classical, d_e)]
-
-
-def _code_network_candidates(encoded: list[_EncodedTile], model, precision: Precision, position_step_m: float | None,
-                             feature_step_std: float) -> LatentCodec:
-    """Code every network tile with the precision's latent codec fitted over all of them (q: quantiser and
-    histograms) and add its candidate: the payload's size and the D_e of the network's output for the unquantised
-    embedding, measured while the tile was in memory (the embedding coding adds a few per cent to it, BENCHMARKS.md
-    "Quantiser steps")."""
-    network_tiles = [tile for tile in encoded if tile.points is not None]
+def _fit_latent(encoded: list[EncodedTile], model, precision: Precision, position_step_m: float | None,
+                feature_step_std: float) -> LatentCodec:
+    """The precision's latent codec fitted over every network tile's embedding (q: quantiser and histograms)."""
     layout = LatentLayout(float(model.config.subsampling_dist), tuple(float(v) for v in model.config.tile_size),
                           int(model.config.embedding_dim))
-    latent = LATENT_CODECS[precision].fit([(tile.points, tile.features) for tile in network_tiles], layout,
-                                          position_step_m=position_step_m, feature_step_std=feature_step_std)
-    for tile in network_tiles:
-        payload = latent.encode(tile.points, tile.features)
-        tile.candidates.append(Candidate(TileCoding.network, payload, len(payload), tile.network_d_e, "network"))
-    return latent
+    return LATENT_CODECS[precision].fit([(tile.points, tile.features) for tile in encoded if tile.points is not None],
+                                        layout, position_step_m=position_step_m, feature_step_std=feature_step_std)
 
 
-def _recode_chosen(encoded: list[_EncodedTile], latent: LatentCodec) -> LatentCodec:
+def _tile_candidates(encoded: list[EncodedTile], tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]],
+                     origin: np.ndarray, model, latent: LatentCodec, target: RateTarget, workers: int | None,
+                     dask_scheduler: str | None, progress: ProgressCallback) -> None:
+    """Every tile's candidate codings (`candidates_job`), set in `encoded` in place: the network's payload is
+    coded here with the map-wide `latent` codec, the workers decode it as the decoder will."""
+    state = ByteWriter()  # the codec as the header stores it (its entropy models do not pickle)
+    latent.write(state)
+    job = TileJob(model, origin, np.asarray(model.config.tile_size, dtype=np.float64), target=target,
+                   latent=(latent.precision, latent.layout, state.getvalue()))
+    payloads = [None if tile.points is None else latent.encode(tile.points, tile.features) for tile in encoded]
+    items = ((tile.index, tile.n_embedding, payload, index, points)
+             for tile, payload, (index, points, _) in zip(encoded, payloads, tile_points))
+    results = _run(candidates_job, job, items, len(encoded), workers, dask_scheduler, progress)
+    for tile, payload, (candidates, network_d_e, post_filter, search) in zip(encoded, payloads, results):
+        if payload is not None:
+            candidates.append(Candidate(TileCoding.network, payload, len(payload), network_d_e, "network"))
+        tile.candidates, tile.post_filter, tile.patch_choices = candidates, post_filter, search
+
+
+def _recode_chosen(encoded: list[EncodedTile], latent: LatentCodec) -> LatentCodec:
     """Refit the latent codec over the tiles that kept the network (`LatentCodec.refit`: same quantisation, so the
     same decoded points) and code those tiles with it."""
     chosen = [tile for tile in encoded if tile.choice.coding is TileCoding.network]

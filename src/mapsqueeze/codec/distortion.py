@@ -65,13 +65,16 @@ class CandidateDistortion:
         self._decoded.append((decoded, own))
         self._values.append(self._exact(decoded, own) if self.exact else self._estimate(decoded, own))
 
-    def settle(self) -> list[float]:
-        """Each added candidate's D_e: its estimate, or the exact value where another's estimate is within CLOSE."""
+    def settle(self, competing: list[bool] | None = None) -> list[float]:
+        """Each added candidate's D_e: its estimate, or the exact value where another competing candidate's estimate
+        is within CLOSE. competing: per candidate in the order added, whether the mode decision may pick it (e.g.
+        no larger than the network's payload, `modes.choose`: the others' D_e decide nothing); None: all."""
         values = list(self._values)
         if not self.exact:
+            rivals = [True] * len(values) if competing is None else competing
             for i, value in enumerate(values):
-                if any(j != i and abs(value - other) <= CLOSE * min(value, other)
-                       for j, other in enumerate(self._values)):
+                if rivals[i] and any(j != i and rivals[j] and abs(value - other) <= CLOSE * min(value, other)
+                                     for j, other in enumerate(self._values)):
                     values[i] = self._exact(*self._decoded[i])
         return values
 

@@ -13,7 +13,7 @@ The post-filter reworks a decoded tile with local surface operations (`geometry.
 - patch choices (bit 7, chosen by `compress` over patch planes where they pay): the same patch operation with one
   of PATCH_OPTIONS per patch (pull strength, extra points, disk radius), the choices entropy coded at the start of
   the tile's payload (`encode_patch_choices`). The encoder decodes the tile as the decoder will and searches the
-  options patch by patch for the highest IoU with the tile's points (`choose_patch_choices`).
+  options patch by patch for the highest IoU with the tile's points (`search_patch_choices`).
 - neighbour planes (bits 0-4, `--post-filter auto`): snap: each point projected onto the PCA plane of its k nearest
   decoded points; spread: extra points on small disks of those planes around each point (fills the gaps between
   clumps); isolated: points with fewer than ISOLATED_MIN_NEIGHBOURS others within ISOLATED_RADIUS_M dropped. The
@@ -314,11 +314,21 @@ def start_option(byte: int) -> int:
     return PATCH_OPTIONS.index((PATCH_STRENGTH, setting.spread_copies, PATCH_RADIUS_M))
 
 
-def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsampling_factors, frame_m: np.ndarray,
-                         extent_m: np.ndarray, byte: int, payload_bytes: int) -> np.ndarray | None:
-    """The tile's patch choices (one per embedding point), or None where they do not pay: a greedy search (`occupancy.patch_option_ious`,
+@dataclass(frozen=True)
+class PatchChoiceSearch:
+    """The result of `search_patch_choices` on one tile."""
+
+    choices: np.ndarray  # (n_patches,) option indices
+    before: float  # IoU with every patch under the start option
+    after: float  # IoU with the choices
+
+
+def search_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsampling_factors, frame_m: np.ndarray,
+                         extent_m: np.ndarray, byte: int) -> PatchChoiceSearch | None:
+    """The tile's patch choices (one per embedding point) of a greedy search (`occupancy.patch_option_ious`,
     PATCH_CHOICE_SWEEPS sweeps from the option of the tile's setting `byte`) for the highest IoU with the tile's
-    points; kept when the IoU gain exceeds IOU_PER_LOG_RATE x ln((payload_bytes + choice bytes) / payload_bytes).
+    points; None when the tile's voxel box is too large for the search (`patch_choice_prefix` decides whether they
+    pay).
 
     original_world: the tile's (N, 3) points in world metres; uncropped: the network's whole (K, 3) output for the
     embedding the decoder sees, in its order, tile-local metres relative to the world point `frame_m`."""
@@ -328,13 +338,16 @@ def choose_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
     start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)
     found = patch_option_ious(original_world, uncropped, patch, PATCH_OPTIONS, extent_m, start, frame_m,
                               IOU_VOXEL_M, PATCH_CHOICE_SWEEPS)
-    if found is None:
+    return None if found is None else PatchChoiceSearch(*found)
+
+
+def patch_choice_prefix(search: PatchChoiceSearch, payload_bytes: int) -> bytes | None:
+    """The payload prefix of the searched choices (`encode_patch_choices`) where they pay: their IoU gain exceeds
+    IOU_PER_LOG_RATE x ln((payload_bytes + prefix bytes) / payload_bytes); else None."""
+    prefix = encode_patch_choices(search.choices)
+    if search.after - search.before <= IOU_PER_LOG_RATE * np.log((payload_bytes + len(prefix)) / payload_bytes):
         return None
-    choices, before, after = found
-    extra = len(encode_patch_choices(choices))
-    if after - before <= IOU_PER_LOG_RATE * np.log((payload_bytes + extra) / payload_bytes):
-        return None
-    return choices
+    return prefix
 
 
 def apply_post_filter(cloud: np.ndarray, byte: int, planes: tuple[np.ndarray, np.ndarray] | None = None

@@ -1,0 +1,168 @@
+"""The per-tile jobs of compress (`codec.compress`), run by its worker processes or a Dask cluster
+(`codec.executor`): `embed_job` encodes a tile, `candidates_job` (once the map's latent codec is fitted over every
+tile's embedding) gives its candidate codings with their D_e, the network's decode post-filter and patch-choice
+search, on one decode of the tile's coded embedding, as the decoder will see it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapsqueeze.codec.container import BOUNDS_STEPS, MAX_POINTS_PER_TILE, TileCoding, frame_origin, quantise_bounds
+from mapsqueeze.codec.distortion import CandidateDistortion
+from mapsqueeze.codec.entropy import ByteReader
+from mapsqueeze.codec.latent import LATENT_CODECS
+from mapsqueeze.codec.modes import Candidate, RateTarget
+from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, own_leaf_distances
+from mapsqueeze.codec.postfilter import (
+    OFF,
+    PatchChoiceSearch,
+    choose_patch_filter,
+    choose_post_filter,
+    search_patch_choices,
+)
+from mapsqueeze.codec.rawtile import decode_raw_tile, encode_raw_tile
+from mapsqueeze.codec.tilepoints import keep_inside, network_points, octree_points
+from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
+from mapsqueeze.geometry.tiling import to_local
+
+RAW_POINTS_PER_EMBEDDING = 4
+"""A tile with at most this many points per embedding point is coded raw: the decoder, trained to grow each
+embedding point into hundreds of points of a dense surface, fits such sparse tiles poorly."""
+
+RAW_CANDIDATE_POINTS_PER_EMBEDDING = 20
+"""Raw coding is also tried (and kept when smaller) for tiles with up to this many points per embedding point;
+beyond it raw coding (>= 13 bits a point) cannot beat even f32 embeddings (192 bits per embedding point)."""
+
+
+@dataclass
+class EncodedTile:
+    """One tile while the map is being compressed: its table fields, embedding and candidate codings."""
+
+    index: tuple[int, int, int]
+    n_points: int
+    bounds_lo: tuple[int, int, int]
+    bounds_hi: tuple[int, int, int]
+    extent_m: np.ndarray  # size of the tile's bounds box (metres)
+    n_embedding: int  # the encoder's embedding points
+    points: np.ndarray | None  # network embedding (None when the network is no candidate: too sparse)
+    features: np.ndarray | None
+    candidates: list[Candidate] | None = None  # set by `compress._tile_candidates`, the network's last
+    post_filter: int = OFF  # the network output's decode post-filter (`codec.postfilter`)
+    patch_choices: PatchChoiceSearch | None = None  # the search's result on the network's decode, when run
+    choice: Candidate | None = None
+
+
+def check_tile_size(index: tuple[int, int, int], n_points: int) -> None:
+    if n_points > MAX_POINTS_PER_TILE:
+        raise InvalidPointCloudError(
+            f"tile {index} holds {n_points:,} points, more than the {MAX_POINTS_PER_TILE:,} a tile may hold")
+
+
+@dataclass(frozen=True)
+class TileJob:
+    """What every tile's encoding shares (sent once to each worker)."""
+
+    model: object
+    origin: np.ndarray  # float64 world corner of the tile grid (metres)
+    tile_size: np.ndarray
+    refine_steps: int = 0
+    target: RateTarget = RateTarget()
+    latent: tuple | None = None  # the latent codec (precision, layout, `LatentCodec.write`'s state)
+
+
+def _tile_frame(job: TileJob, index: tuple[int, int, int], points: np.ndarray
+                ) -> tuple[tuple[int, int, int], tuple[int, int, int], np.ndarray, np.ndarray, np.ndarray]:
+    """(bounds_lo, bounds_hi, extent in metres, frame origin in world metres, float64 tile-local points) of a
+    tile's float64 world points."""
+    check_tile_size(index, len(points))
+    tile_origin = job.origin + np.asarray(index) * job.tile_size
+    lo, hi = quantise_bounds(points - tile_origin, job.tile_size)
+    frame = frame_origin(tile_origin, lo, job.tile_size)
+    return lo, hi, np.subtract(hi, lo) * job.tile_size / BOUNDS_STEPS, frame, to_local(points, frame, job.tile_size)
+
+
+def embed_job(job: TileJob, item: tuple[tuple[int, int, int], np.ndarray, dict]) -> EncodedTile:
+    """One tile's first job: (tile index, its float64 world points, its attributes) -> its table fields and the
+    network's embedding (refined when asked), or none when the tile is too sparse for the network."""
+    index, points, _ = item
+    lo, hi, extent, _, local = _tile_frame(job, index, points)
+    embedding = job.model.encode(local)
+    n_embedding = len(embedding.points)
+    if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:  # too sparse for the network and the octree
+        return EncodedTile(index, len(local), lo, hi, extent, n_embedding, None, None)
+    if job.refine_steps:
+        embedding = job.model.refine(local, embedding, job.refine_steps)
+    return EncodedTile(index, len(local), lo, hi, extent, n_embedding, embedding.points, embedding.features)
+
+
+def candidates_job(job: TileJob, item: tuple) -> tuple:
+    """One tile's second job: (encoded index, embedding points, network payload or None, given index, float64
+    world points) -> (classical candidates, the network's D_e, its post-filter, its patch-choice search or None)."""
+    expected, n_embedding, payload, index, points = item
+    if tuple(index) != tuple(expected):
+        raise MapsqueezeError(f"tile {tuple(index)} given where tile {tuple(expected)} was encoded")
+    embedding = None
+    if payload is not None:
+        precision, layout, state = job.latent
+        latent = LATENT_CODECS[precision].read(ByteReader(state, "latent codec"), layout)
+        embedding = latent.decode(payload, len(points), f"tile {tuple(index)}")
+    return _encode_tile(index, points, job, n_embedding, embedding, None if payload is None else len(payload))
+
+
+def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: TileJob, n_embedding: int,
+                 embedding: tuple[np.ndarray, np.ndarray] | None, network_bytes: int | None) -> tuple:
+    """The tile's classical candidates, each with its payload and D_e, and the network's D_e, decode post-filter
+    and patch-choice search for `embedding` (None: no network candidate) as the decoder sees it (coded with the
+    map's latent codec): raw when the tile is sparse enough for raw coding to compete or a rate target is given,
+    the octree at each leaf of OCTREE_LEAVES_M unless the target forbids the fallback; the network's decode
+    post-filter setting (none under post-filter "off") and the network's D_e: that of the filtered decode, except
+    under the default patch planes without a rate target, where it is the unfiltered decode's (the filter moves D_e
+    by -2 to +5 % on the real submaps; this spares a nearest-neighbour search over 2-3 times the points, and the
+    tiles' codings are those of post-filter "off"), where the patch choices are also searched on the decode
+    (`postfilter.search_patch_choices`, kept by `_assemble` where they pay). D_e values are `codec.distortion`'s:
+    estimated on samples, exact where two the mode decision may pick are close (without a target: those no larger
+    than the network's payload of `network_bytes`, `modes.choose`), exact throughout under a rate target or with
+    the neighbour-plane post-filter ("auto")."""
+    model, target, tile_size = job.model, job.target, job.tile_size
+    lo, _, extent, frame, local = _tile_frame(job, index, tile_points)
+    distortion = CandidateDistortion(local, exact=target.given or target.post_filter == "auto")
+    classical = []  # (coding, payload, label) in the order their decodings were added to `distortion`
+    if target.given or len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
+        raw = encode_raw_tile(local, tile_size)
+        distortion.add(decode_raw_tile(raw, tile_size, len(local), "raw candidate"))
+        classical.append((TileCoding.raw, raw, "raw"))
+    if embedding is None:
+        return _candidates(classical, distortion.settle()), None, OFF, None
+    leaves = OCTREE_LEAVES_M if target.fallback else ()
+    for leaf, (payload, centres) in zip(leaves, encode_octree_tiles(local, tile_size, leaves)):
+        distortion.add(octree_points(centres, extent, None),
+                       lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent))
+        classical.append((TileCoding.octree, payload, f"octree {leaf:g} m"))
+    post_filter, search = OFF, None
+    if target.post_filter == "auto":
+        post_filter, network_d_e = choose_post_filter(
+            local, network_points(model, *embedding, extent, None), frame, lambda cloud: keep_inside(cloud, extent))
+        d_e = distortion.settle()
+    else:
+        if target.post_filter == "patch":
+            uncropped = model.decode(*embedding)
+            decoded = keep_inside(uncropped, extent)
+            post_filter, filtered = choose_patch_filter(local + frame, uncropped, decoded,
+                                                        model.config.upsampling_factors, frame, extent)
+            if target.given:
+                decoded = filtered
+            else:
+                search = search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped,
+                                              model.config.upsampling_factors, frame, extent, post_filter)
+        else:
+            decoded = network_points(model, *embedding, extent, None)
+        distortion.add(decoded)
+        *d_e, network_d_e = distortion.settle([len(payload) <= network_bytes for _, payload, _ in classical] + [True])
+    return _candidates(classical, d_e), network_d_e, post_filter, search
+
+
+def _candidates(classical: list[tuple[TileCoding, bytes, str]], d_e: list[float]) -> list[Candidate]:
+    return [Candidate(coding, payload, len(payload), value, label)
+            for (coding, payload, label), value in zip(classical, d_e)]
