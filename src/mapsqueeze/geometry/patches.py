@@ -32,10 +32,12 @@ def patch_options(points: np.ndarray, patch: int, options, upper: np.ndarray | N
 def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarray | None, frame_m: np.ndarray,
                        voxel_m: np.ndarray, low: np.ndarray, shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct IoU voxels of `patch_options`'s points, without the points: (int32 cells, int64 offsets), list
-    l = k n_patches + i (patch i under option k) in cells[offsets[l]:offsets[l + 1]] in order of first appearance;
-    a point's cell is that of its float32 value p in the grid of `shape` voxels from voxel `low`, the voxel of
-    floor((p + frame_m) / voxel_m) (metres; as `occupancy._mark_voxels`). The grid must hold every point inside
-    [0, upper] (fewer than 2^31 cells)."""
+    l = k n_patches + i (patch i under option k) in cells[offsets[l]:offsets[l + 1]]; a point's cell is that of its
+    float32 value p in the grid of `shape` voxels from voxel `low`, the voxel of floor((p + frame_m) / voxel_m)
+    (metres; as `occupancy._mark_voxels`). The grid must hold every point inside [0, upper] (fewer than 2^31
+    cells). An option with extra points whose pull strength an earlier option without extra points has starts
+    from that option's cells of the patch (the same moved points), then adds its extra points' cells: a third less
+    work for PATCH_OPTIONS; the cells of a list come in no particular order."""
     points, box_low, box = checked_points(points, patch, upper)
     strengths, copies, radii = _option_arrays(options)
     n_patches = len(points) // patch
@@ -44,10 +46,12 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     # at most one cell per reworked point; pages never written are never mapped in (~0.7M of 6M on a KITTI tile)
     cells = np.empty(len(points) * int(np.sum(1 + copies)), dtype=np.int32)
     scratch = np.empty((patch * int(1 + copies.max(initial=0)), 3), dtype=np.float32)  # one patch's points
+    base = np.array([next((j for j in range(k) if strengths[j] == strengths[k] and copies[j] == 0), -1)
+                     if copies[k] else -1 for k in range(len(options))], dtype=np.int64)
     _patch_planes_kernel(points, patch, strengths, copies, radii, True, box_low, box, GOLDEN_ANGLE, GOLDEN_FRACTION,
                          scratch, offsets[1:], True, np.asarray(frame_m, dtype=np.float64),
                          np.asarray(voxel_m, dtype=np.float64), np.asarray(low, dtype=np.int64),
-                         np.asarray(shape, dtype=np.int64), seen, cells)
+                         np.asarray(shape, dtype=np.int64), seen, cells, base)
     return cells[:offsets[-1]], offsets
 
 
@@ -68,7 +72,8 @@ def _rework(points: np.ndarray, patch: int, options, per_patch: bool, upper: np.
     ends = np.empty(len(options) * (len(points) // patch), dtype=np.int64)
     _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, GOLDEN_ANGLE,
                          GOLDEN_FRACTION, out, ends, False, np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64),
-                         np.ones(3, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0, dtype=np.int32))
+                         np.ones(3, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0, dtype=np.int32),
+                         np.full(len(options), -1, dtype=np.int64))
     return out, ends
 
 
@@ -137,13 +142,15 @@ def _append_cells(rows, count, frame, voxel, grid_low, grid_shape, seen, entry, 
 
 @compiled
 def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, golden_angle, golden_fraction,
-                         out, ends, to_cells, frame, voxel, grid_low, grid_shape, seen, cells):
+                         out, ends, to_cells, frame, voxel, grid_low, grid_shape, seen, cells, base):
     """`_rework`'s kernel: each patch's plane (centroid, normal, tangents) fitted once, then the patches reworked
     option after option; ends[k n_patches + i]: the row after patch i under option k. Per patch, every patch has
     the same disk samples: those of its first patch are kept and reused (no sine or cosine for the others).
     to_cells (`patch_option_cells`): `out` holds one patch's points at a time, whose distinct voxel cells are
     appended to `cells` (`_append_cells`; seen: -1 per grid cell, a work array), and ends[l] is the end of list
-    l's cells. Returns the rows stored, or the cells."""
+    l's cells; the points of a patch under an option with base[option] >= 0 are those of option base[option] (the
+    same strength, no extra points), whose cells it copies, followed by its extra points. Returns the rows stored,
+    or the cells."""
     n_patches = points.shape[0] // patch
     planes = np.empty((n_patches, 12))
     for index in range(n_patches):
@@ -188,14 +195,22 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
             reuse = per_patch and index > 0  # the disk samples of patch 0, computed as they were used
             plane = planes[index]
             entry = option * n_patches + index
+            copied = to_cells and base[option] >= 0  # the patch's own points: the cells of option base[option]
             if to_cells:
                 kept = 0
+                if copied:
+                    source = base[option] * n_patches + index
+                    for j in range(ends[source - 1] if source > 0 else 0, ends[source]):
+                        seen[cells[j]] = entry
+                        cells[n_cells] = cells[j]
+                        n_cells += 1
             mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
             fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
             for i in range(start, start + patch):
                 offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
                 px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
-                kept = _store_inside(out, kept, px, py, pz, low, box)
+                if not copied:
+                    kept = _store_inside(out, kept, px, py, pz, low, box)
                 for j in range(n_copies):
                     sample = (i - first) * n_copies + j
                     if reuse:
