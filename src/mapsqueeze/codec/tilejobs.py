@@ -153,13 +153,15 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
                                                         model.config.upsampling_factors, frame, extent)
             if target.given:
                 decoded = filtered
-            else:
-                search = search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped,
-                                              model.config.upsampling_factors, frame, extent, post_filter)
+            del filtered
         else:
             decoded = network_points(model, *embedding, extent, None)
         distortion.add(decoded)
         *d_e, network_d_e = distortion.settle([len(payload) <= network_bytes for _, payload, _ in classical] + [True])
+        if target.post_filter == "patch" and not target.given:
+            del distortion, decoded  # the candidates' decodes and trees: the search's arrays take their memory
+            search = search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped,
+                                          model.config.upsampling_factors, frame, extent, post_filter)
     return _candidates(classical, d_e), network_d_e, post_filter, search
 
 
