@@ -156,7 +156,7 @@ def test_q_coder_round_trips_bit_exactly_to_the_dequantised_embedding():
     model = QuantModel.fit(quantised, grid, quantiser)
     header = ByteWriter()
     model.write(header)
-    read_model = QuantModel.read(ByteReader(header.getvalue(), "header"), grid)
+    read_model = QuantModel.read(ByteReader(header.getvalue(), "header"), grid, len(quantiser.feature_mean))
     for (points, features), q in zip(tiles, quantised):
         expected_points, expected_features = dequantise(q, grid, quantiser)
         decoded = read_model.decode(model.encode(q), len(points), "tile")
@@ -211,15 +211,20 @@ def pinned_embeddings() -> list[tuple[np.ndarray, np.ndarray]]:
     return tiles
 
 
-@pytest.mark.parametrize(("name", "steps", "digest"), [
-    ("f32", {}, "ea4d8b510d1a4007a17bcf227e7696d0cc1b21f5c681333640463aa06ea4f96a"),
-    ("f16", {}, "7a9d65e3918f723db1bb8ef1d3cb6a12cca3aaf2eb41835967c757e77f2f3b16"),
-    # q at the steps of format version 6's first writer (0.01 x r_s, 0.2 std): the coding itself is unchanged
-    ("q", {"position_step_m": 0.02, "feature_step_std": 0.2},
+@pytest.mark.parametrize(("name", "steps", "compact", "digest"), [
+    ("f32", {}, True, "ea4d8b510d1a4007a17bcf227e7696d0cc1b21f5c681333640463aa06ea4f96a"),
+    ("f16", {}, True, "7a9d65e3918f723db1bb8ef1d3cb6a12cca3aaf2eb41835967c757e77f2f3b16"),
+    # q at the steps of format version 6's first writer (0.01 x r_s, 0.2 std) in the header state of versions 1 to
+    # 6: the coding itself is unchanged
+    ("q", {"position_step_m": 0.02, "feature_step_std": 0.2}, False,
      "2bcde87386437f20ccbaf010c2415113fabbb7f5f9c4def85eba1334cac66160"),
-    ("q", {}, "9912c53afdf8f04cab04c1c36aa112905d4528176d1d76fa8bb5a39109725487"),  # the default steps
+    ("q", {}, False, "9912c53afdf8f04cab04c1c36aa112905d4528176d1d76fa8bb5a39109725487"),  # the default steps
+    # the compact header state of version 7 (no channel count, one position step): the same payloads
+    ("q", {"position_step_m": 0.02, "feature_step_std": 0.2}, True,
+     "910a6bdef3e5a88f45ca9f543275690e70dd489e296338c4890aea128daad04d"),
+    ("q", {}, True, "d7035a7d9d0f435a9f45a65f0ef962bb7ead638b5dd3a06db0a5723345c7befc"),
 ])
-def test_latent_codec_bytes_are_pinned(name, steps, digest):
+def test_latent_codec_bytes_are_pinned(name, steps, compact, digest):
     """Header state and tile payloads of each precision must not drift: pinned digests, changed only with the
     format or the default q steps; the codec read back from its header state decodes what the fitted one encoded."""
     import hashlib
@@ -228,10 +233,10 @@ def test_latent_codec_bytes_are_pinned(name, steps, digest):
     tiles = pinned_embeddings()
     codec = LATENT_CODECS[Precision[name]].fit(tiles, layout, **steps)
     writer = ByteWriter()
-    codec.write(writer)
+    codec.write(writer, compact)
     payloads = [codec.encode(points, features) for points, features in tiles]
     assert hashlib.sha256(writer.getvalue() + b"".join(payloads)).hexdigest() == digest
-    read = LATENT_CODECS[Precision[name]].read(ByteReader(writer.getvalue(), "header"), layout)
+    read = LATENT_CODECS[Precision[name]].read(ByteReader(writer.getvalue(), "header"), layout, compact)
     for (points, _), payload in zip(tiles, payloads):
         expected, got = codec.decode(payload, len(points), "tile"), read.decode(payload, len(points), "tile")
         assert expected[0].tobytes() == got[0].tobytes() and expected[1].tobytes() == got[1].tobytes()
@@ -484,7 +489,7 @@ def test_rate_targets_are_met(map_points, model):
 def test_default_decode_is_each_tiles_native_count(network_only, model):
     reader, stream = open_container(network_only)
     with stream:
-        assert reader.version == 3 and reader.header.default_count.name == "native"  # no post-filter: version 3
+        assert reader.version == 7 and reader.header.default_count.name == "native"
         occupied, tile_size = {entry.index for entry in reader.entries}, np.asarray(reader.header.tile_size)
         native = sum(len(decompress_module.decode_payload(reader.header, entry, reader.payload(position), model, None,
                                                           entry.label(position), faces=internal_faces(
@@ -501,13 +506,32 @@ def test_default_decode_is_each_tiles_native_count(network_only, model):
 
 
 def as_version_1(data: bytes) -> bytes:
-    """The same file in the version 1 layout: no default-count byte in the header (the input count by default)."""
-    body_length = struct.unpack_from("<I", data, 8)[0]
-    body = data[12:12 + body_length]
-    count_at = 1 + body[0] + 32 + struct.calcsize("<Bd3d3dQIBd")
-    body = body[:count_at] + body[count_at + 1:]
-    head = struct.pack("<4sHHI", b"MSQZ", 1, 0, len(body)) + body
-    return head + struct.pack("<I", zlib.crc32(head)) + data[12 + body_length + 4:]
+    """The same geometry-only file (no post-filter) in the version 1 layout (docs/format.md): fixed-width header
+    fields, no default-count byte (the input count by default), no post-filter byte, payload offsets in the table."""
+    reader, stream = open_container(data)
+    with stream:
+        header, payloads = reader.header, [reader.payload(p) for p in range(len(reader.entries))]
+    name = header.model_id.encode()
+    body = ByteWriter()
+    body.raw(struct.pack("<B", len(name)) + name + bytes.fromhex(header.weights_sha256))
+    body.pack("Bd3d3dQIBd", header.precision, header.subsampling_dist_m, *header.tile_size, *header.origin,
+              header.n_points, header.n_tiles, header.n_features, header.raw_step_m)
+    header.latent.write(body, compact=False)
+    table, offset = ByteWriter(), 0
+    for entry, payload in zip(reader.entries, payloads):
+        assert entry.post_filter == 0
+        for value in entry.index:
+            table.svarint(value)
+        table.varint(entry.n_points)
+        table.pack("6HB", *entry.bounds_lo, *entry.bounds_hi, entry.coding)
+        table.varint(offset)
+        table.varint(len(payload))
+        table.pack("I", zlib.crc32(payload))
+        offset += len(payload)
+    head = struct.pack("<4sHHI", b"MSQZ", 1, 0, len(body.getvalue())) + body.getvalue()
+    entries = table.getvalue()
+    return b"".join([head, struct.pack("<I", zlib.crc32(head)), struct.pack("<I", len(entries)), entries,
+                     struct.pack("<I", zlib.crc32(entries)), *payloads])
 
 
 def test_version_1_files_decode_to_the_input_count(network_only, map_points, model):

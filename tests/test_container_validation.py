@@ -26,6 +26,7 @@ from mapsqueeze.codec.container import (
     open_container,
     serialise_container,
 )
+from mapsqueeze.codec.entropy import ByteReader
 from mapsqueeze.codec.postfilter import PATCH_CHOICES, PATCH_OPTIONS, encode_patch_choices
 from mapsqueeze.codec.rawtile import encode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, MapsqueezeError, ModelError
@@ -75,11 +76,25 @@ def craft(data: bytes, header_changes: dict | None = None, tile_changes: dict | 
     header = dataclasses.replace(header, **(header_changes or {}))
     records[position] = dataclasses.replace(records[position], **(tile_changes or {}))
     out = bytearray(serialise_container(header, records))
-    if flags:
-        struct.pack_into("<H", out, 6, flags)
-        body_end = 12 + struct.unpack_from("<I", out, 8)[0]
-        struct.pack_into("<I", out, body_end, zlib.crc32(bytes(out[:body_end])))
+    if flags:  # version 7: the flags varint at byte 6 (one byte below 128)
+        assert out[6] == 0 and flags < 128
+        out[6] = flags
+        return with_head_crc(out)
     return bytes(out)
+
+
+def head_layout(data: bytes) -> tuple[int, int, int]:
+    """(first header byte, header bytes, table bytes) of a version 7 file whose flags varint is one byte."""
+    lengths = ByteReader(bytes(data[7:27]), "preamble")
+    body, table = lengths.varint(), lengths.varint()
+    return 7 + 20 - lengths.remaining, body, table
+
+
+def with_head_crc(data: bytearray) -> bytes:
+    """A version 7 file with the CRC of its header and table recomputed."""
+    start, body, table = head_layout(data)
+    struct.pack_into("<I", data, start + body + table, zlib.crc32(bytes(data[:start + body + table])))
+    return bytes(data)
 
 
 def test_crafting_without_changes_keeps_the_bytes(compressed):
@@ -148,6 +163,46 @@ def test_model_id_resolves_only_to_shipped_models(compressed, model_dir, tmp_pat
         assert len(mapsqueeze.decompress(data, model=str(model_dir))) > 0  # the user's --model works
 
 
+@pytest.fixture(scope="module")
+def shipped_file(map_points):
+    return mapsqueeze.compress(map_points, model="e0", precision="q", workers=1)
+
+
+def test_a_shipped_model_is_named_by_a_digest_prefix_and_its_config(shipped_file, map_points, model_dir):
+    from mapsqueeze.model.shipped import shipped_weights_sha256
+
+    reader, stream = open_container(shipped_file)
+    stream.close()
+    header = reader.header
+    assert reader.version == 7 and header.model_id == "e0" and header.weights_sha256 == shipped_weights_sha256("e0")
+    assert (header.subsampling_dist_m, header.tile_size, header.n_features) == (3.0, (40.0, 40.0, 15.0), 3)
+    start, body, _ = head_layout(shipped_file)
+    assert shipped_file[start + 2:start + 4] == b"e0"
+    assert shipped_file[start + 4:start + 12] == bytes.fromhex(header.weights_sha256)[:8]
+    assert len(mapsqueeze.decompress(shipped_file, n_points=len(map_points))) == len(map_points)
+    # A custom model stores its whole digest and its grid: 24 + 33 more header bytes.
+    custom = craft(shipped_file, header_changes={"model_id": "e0x"})
+    assert head_layout(custom)[1] == body + 1 + 24 + 33
+    with pytest.raises(ModelError, match="not a shipped model"):
+        mapsqueeze.decompress(custom)
+
+
+def test_a_shipped_model_of_other_weights_or_an_unknown_one_is_refused(shipped_file):
+    start, _, _ = head_layout(shipped_file)
+    other = bytearray(shipped_file)
+    other[start + 11] ^= 1  # the digest prefix's last byte
+    with pytest.raises(ContainerError, match="shipped model 'e0' of weights sha256 .*, this mapsqueeze ships"):
+        mapsqueeze.info(with_head_crc(other))
+    unknown = bytearray(shipped_file)
+    unknown[start + 3:start + 4] = b"9"  # e9: no such shipped model
+    with pytest.raises(ContainerError, match="names shipped model 'e9', which this mapsqueeze does not ship"):
+        mapsqueeze.info(with_head_crc(unknown))
+    reserved = bytearray(shipped_file)
+    reserved[start] |= 0x80
+    with pytest.raises(ContainerError, match="reserved header flags 0x80"):
+        mapsqueeze.info(with_head_crc(reserved))
+
+
 def test_good_file_still_decodes(compressed, model, map_points):
     assert len(mapsqueeze.decompress(compressed, model=model, n_points=len(map_points))) == len(map_points)
 
@@ -191,7 +246,14 @@ FUZZ_EXAMPLES = int(os.environ.get("MAPSQUEEZE_FUZZ_EXAMPLES", "25"))
 MEMORY_CAP_BYTES = 3 << 30
 
 
-def test_fuzzed_headers_and_tables_give_typed_errors_or_decodes(compressed, model_dir, model, tmp_path):
+@pytest.mark.parametrize("layout", ["custom", "shipped"])
+def test_fuzzed_headers_and_tables_give_typed_errors_or_decodes(layout, compressed, shipped_file, model_dir,
+                                                               tmp_path):
+    """Both version 7 header layouts: a custom model's (whole digest, grid stored) and a shipped model's."""
+    from mapsqueeze.model.shipped import SHIPPED_DIR
+
+    if layout == "shipped":
+        compressed, model_dir = shipped_file, SHIPPED_DIR / "e0"
     crafted: list[bytes] = []
 
     @settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=True,
@@ -221,7 +283,7 @@ def test_fuzzed_headers_and_tables_give_typed_errors_or_decodes(compressed, mode
 
 @pytest.fixture(scope="module")
 def with_choices(compressed):
-    """`compressed` as a version 6 file decoding to the input counts: every network tile with patch choices (a
+    """`compressed` decoding to the input counts: every network tile with patch choices (a
     stream of one option per embedding point, all options used) before its latent payload."""
     header, records = parts(compressed)
     changed = []
@@ -258,7 +320,7 @@ _STREAM_EDITS = st.lists(st.tuples(st.sampled_from(["set", "insert", "delete", "
 
 def test_fuzzed_choice_streams_give_typed_errors_or_decodes(with_choices, model_dir, model, tmp_path):
     header, records = parts(with_choices)
-    assert open_container(with_choices)[0].version == 6
+    assert open_container(with_choices)[0].version == 7
     assert len(mapsqueeze.decompress(with_choices, model=model)) == header.n_points  # the unmutated file decodes
     network = [p for p, record in enumerate(records) if record.post_filter == PATCH_CHOICES]
     crafted: list[bytes] = []

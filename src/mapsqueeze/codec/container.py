@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import io
 import os
 import struct
@@ -21,34 +22,47 @@ from mapsqueeze.codec.attributes import AttributeSchema
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
-from mapsqueeze.codec.postfilter import OFF, PATCH, PATCH_CHOICE_VERSION, PATCH_CHOICES, PATCH_VERSION, check_setting
+from mapsqueeze.codec.postfilter import OFF, PATCH_VERSION, check_setting
 from mapsqueeze.codec.rawtile import axis_bits
 from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
-VERSION = PATCH_CHOICE_VERSION
-"""Newest version written (6: post-filter bytes may select patch choices, `codec.postfilter.PATCH_CHOICES`, whose
-choice stream starts the tile's payload; written only when a tile has them, else version 5 (post-filter bytes may
-select patch planes, `codec.postfilter.PATCH`) when a tile has those, else version 4 (a decode post-filter byte
-per tile) when a tile has a post-filter, else version 3, the same bytes as before the post-filter existed);
-version 3 files (attribute streams coded on the decoded geometry,
-`codec.attributes`), version 2 files (attribute streams with their own voxels, `codec.attrlegacy`) and version 1
-files (also no default-count field, network and raw tiles only) still read."""
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
+COMPACT_VERSION = 7
+"""The compact layout (docs/format.md): varint lengths, one CRC over header and table, a shipped model named by
+its id and an 8-byte weights digest prefix with its grid taken from its config, varint counts, no payload offsets,
+the latent codec's compact state."""
+VERSION = COMPACT_VERSION
+"""The version written. Readable besides: 6 (post-filter bytes may select patch choices,
+`codec.postfilter.PATCH_CHOICES`), 5 (patch planes, `codec.postfilter.PATCH`), 4 (a decode post-filter byte per
+tile), 3 (attribute streams coded on the decoded geometry, `codec.attributes`), 2 (attribute streams with their
+own voxels, `codec.attrlegacy`) and 1 (also no default-count field, network and raw tiles only)."""
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
 ATTRIBUTES_ON_DECODED_GEOMETRY = 3
 """First version whose attribute streams are coded on the tiles' decoded geometry."""
 POST_FILTER_VERSION = 4
 """First version whose tile table entries carry a post-filter byte."""
-_VERSION_WITHOUT_POST_FILTER = 3
 SUPPORT_CRC_VERSION = PATCH_VERSION
 """First version whose attribute streams all carry their support's CRC; versions 3 and 4 were written without it
 and, later, with it (docs/format.md, "Attributes"), and are read in both layouts."""
-_PREAMBLE = struct.Struct("<4sHHI")  # magic, version, reserved flags, header body length
+_PREAMBLE = struct.Struct("<4sHHI")  # magic, version, reserved flags, header body length (versions 1 to 6)
+_MAGIC_VERSION = struct.Struct("<4sH")
 _CRC = struct.Struct("<I")
 _TABLE_LENGTH = struct.Struct("<I")
-_MIN_ENTRY_BYTES = 3 + 1 + 12 + 1 + 1 + 1 + 4  # a tile table entry holds at least this many bytes
+_MIN_ENTRY_BYTES = 3 + 1 + 12 + 1 + 1 + 1 + 4  # a tile table entry holds at least this many bytes (versions 1-6)
+_MIN_COMPACT_ENTRY_BYTES = 3 + 1 + 1 + 1 + 4  # version 7
+_SHIPPED_DIGEST_BYTES = 8
+"""Weights digest bytes of a version 7 file naming a shipped model (a SHA-256 prefix: enough to tell builds of a
+shipped model apart; files of other models hold all 32)."""
+DEFAULT_RAW_STEP_M = 0.01
+"""The raw step a version 7 header leaves out (any other is stored)."""
+_BODY_PRECISION_BITS = 0b11  # version 7 header flags: bits 0-1 precision
+_BODY_NATIVE_COUNT = 1 << 2  # default count native
+_BODY_SHIPPED = 1 << 3  # a shipped model: 8-byte digest prefix, grid and channels from its config
+_BODY_RAW_STEP = 1 << 4  # the raw step is stored (else DEFAULT_RAW_STEP_M)
+_BODY_FLAGS = _BODY_PRECISION_BITS | _BODY_NATIVE_COUNT | _BODY_SHIPPED | _BODY_RAW_STEP
+_FULL_FACES_SHIFT = 2  # version 7 table: coding byte bits 2-7, bounds at the tile's faces (lo 0 / hi 65535) omitted
 _MAX_INDEX = 2**31
 MAX_HEADER_BYTES = 1 << 24
 MAX_POINTS_PER_TILE = 1 << 26
@@ -101,21 +115,36 @@ class Header:
         return LatentLayout(self.subsampling_dist_m, self.tile_size, self.n_features)
 
     def serialise(self) -> bytes:
+        """The version 7 header body."""
         writer = ByteWriter()
         name = self.model_id.encode()
         if len(name) > 255:
             raise ValueError("model id longer than 255 bytes")
-        writer.pack("B", len(name))
+        shipped = shipped_layout(self.model_id) == (self.weights_sha256, self.subsampling_dist_m,
+                                                    tuple(self.tile_size), self.n_features)
+        raw_step = self.raw_step_m != DEFAULT_RAW_STEP_M
+        writer.pack("BB", self.precision | (_BODY_NATIVE_COUNT if self.default_count is DefaultCount.native else 0)
+                    | (_BODY_SHIPPED if shipped else 0) | (_BODY_RAW_STEP if raw_step else 0), len(name))
         writer.raw(name)
-        writer.raw(bytes.fromhex(self.weights_sha256))
-        writer.pack("Bd3d3dQIBdB", self.precision, self.subsampling_dist_m, *self.tile_size, *self.origin,
-                    self.n_points, self.n_tiles, self.n_features, self.raw_step_m, self.default_count)
+        digest = bytes.fromhex(self.weights_sha256)
+        if len(digest) != 32:
+            raise ValueError("weights digest must be a SHA-256")
+        writer.raw(digest[:_SHIPPED_DIGEST_BYTES] if shipped else digest)
+        if not shipped:
+            writer.pack("d3dB", self.subsampling_dist_m, *self.tile_size, self.n_features)
+        writer.pack("3d", *self.origin)
+        writer.varint(self.n_points)
+        writer.varint(self.n_tiles)
+        if raw_step:
+            writer.pack("d", self.raw_step_m)
         self.latent.write(writer)
         return writer.getvalue()
 
     @classmethod
     def parse(cls, body: bytes, version: int = VERSION) -> "Header":
         reader = ByteReader(body, "header")
+        if version >= COMPACT_VERSION:
+            return cls._parse_compact(reader)
         (name_length,) = reader.unpack("B")
         try:
             model_id = reader.raw(name_length).decode()
@@ -132,6 +161,43 @@ class Header:
                 default_count = DefaultCount(count_byte)
             except ValueError:
                 raise reader.fail(f"unknown default count rule {count_byte}") from None
+        return cls._checked(reader, model_id, sha, precision_byte, r_s, tile_size, origin, n_points, n_tiles,
+                            n_features, raw_step, default_count, compact=False)
+
+    @classmethod
+    def _parse_compact(cls, reader: ByteReader) -> "Header":
+        flags, name_length = reader.unpack("BB")
+        if flags & ~_BODY_FLAGS:
+            raise reader.fail(f"reserved header flags 0x{flags & ~_BODY_FLAGS:02x} set")
+        try:
+            model_id = reader.raw(name_length).decode()
+        except UnicodeDecodeError:
+            raise reader.fail("model id is not UTF-8") from None
+        if flags & _BODY_SHIPPED:
+            prefix = reader.raw(_SHIPPED_DIGEST_BYTES).hex()
+            shipped = shipped_layout(model_id)
+            if shipped is None:
+                raise reader.fail(f"names shipped model {model_id!r}, which this mapsqueeze does not ship")
+            sha, r_s, tile_size, n_features = shipped
+            if not sha.startswith(prefix):
+                raise reader.fail(f"written with shipped model {model_id!r} of weights sha256 {prefix}..., this "
+                                  f"mapsqueeze ships {model_id!r} with {sha[:2 * _SHIPPED_DIGEST_BYTES]}...")
+        else:
+            sha = reader.raw(32).hex()
+            r_s, *tile_size, n_features = reader.unpack("d3dB")
+        origin = reader.unpack("3d")
+        n_points = reader.varint(limit=2**64)
+        n_tiles = reader.varint(limit=2**32)
+        raw_step = reader.unpack("d")[0] if flags & _BODY_RAW_STEP else DEFAULT_RAW_STEP_M
+        default_count = DefaultCount.native if flags & _BODY_NATIVE_COUNT else DefaultCount.input
+        return cls._checked(reader, model_id, sha, flags & _BODY_PRECISION_BITS, r_s, tuple(tile_size), origin,
+                            n_points, n_tiles, n_features, raw_step, default_count, compact=True)
+
+    @classmethod
+    def _checked(cls, reader: ByteReader, model_id: str, sha: str, precision_byte: int, r_s: float,
+                 tile_size: tuple, origin: tuple, n_points: int, n_tiles: int, n_features: int, raw_step: float,
+                 default_count: DefaultCount, compact: bool) -> "Header":
+        """The header of these fields after checking them, with the latent codec's state read from `reader`."""
         try:
             precision = Precision(precision_byte)
         except ValueError:
@@ -151,9 +217,23 @@ class Header:
             raise reader.fail(f"{n_features} embedding channels")
         header = cls(model_id, sha, precision, r_s, tile_size, origin, n_points, n_tiles, n_features, raw_step,
                      default_count=default_count)
-        header = dataclasses.replace(header, latent=LATENT_CODECS[precision].read(reader, header.layout))
+        header = dataclasses.replace(header, latent=LATENT_CODECS[precision].read(reader, header.layout, compact))
         reader.expect_end()
         return header
+
+
+@functools.lru_cache(maxsize=None)
+def shipped_layout(model_id: str) -> tuple[str, float, tuple[float, float, float], int] | None:
+    """(weights SHA-256 hex, r_s, tile size, embedding channels) of the shipped model `model_id`, or None when no
+    shipped model has that name: what a version 7 header naming a shipped model leaves out."""
+    from mapsqueeze.model.config import ModelConfig
+    from mapsqueeze.model.shipped import CONFIG_FILE, SHIPPED_DIR, shipped_weights_sha256
+
+    sha = shipped_weights_sha256(model_id)
+    if sha is None:
+        return None
+    config = ModelConfig.load(SHIPPED_DIR / model_id / CONFIG_FILE)
+    return sha, float(config.subsampling_dist), tuple(float(v) for v in config.tile_size), int(config.embedding_dim)
 
 
 @dataclass(frozen=True)
@@ -237,36 +317,38 @@ class AttributeSection:
 
 
 def serialise_container(header: Header, tiles: list[TileRecord], attributes: AttributeSection | None = None) -> bytes:
-    """The complete file: preamble, header, header CRC, tile table (length, entries, CRC), payloads in table order,
-    then the attribute section when `attributes` is given (without it the bytes are those of a geometry-only file)."""
+    """The complete version 7 file: magic, version, flags and the header and table lengths, the header, the tile
+    table, their CRC, the payloads in table order, then the attribute section when `attributes` is given (without
+    it the bytes are those of a geometry-only file)."""
     body = header.serialise()
-    flags = 0 if attributes is None else ATTRIBUTES_FLAG
-    if any(tile.post_filter == PATCH_CHOICES for tile in tiles):
-        version = PATCH_CHOICE_VERSION
-    elif any(tile.post_filter & PATCH for tile in tiles):
-        version = PATCH_VERSION
-    elif any(tile.post_filter != OFF for tile in tiles):
-        version = POST_FILTER_VERSION
-    else:
-        version = _VERSION_WITHOUT_POST_FILTER
-    head = _PREAMBLE.pack(MAGIC, version, flags, len(body)) + body
-    head += _CRC.pack(zlib.crc32(head))
     table = ByteWriter()
-    offset = 0
     for tile in tiles:
         for value in tile.index:
             table.svarint(value)
         table.varint(tile.n_points)
-        table.pack("6HB", *tile.bounds_lo, *tile.bounds_hi, tile.coding)
-        if version >= POST_FILTER_VERSION:
+        low_faces = [value == 0 for value in tile.bounds_lo]
+        high_faces = [value == BOUNDS_STEPS for value in tile.bounds_hi]
+        faces = sum(1 << bit for bit, full in enumerate(low_faces + high_faces) if full)
+        table.pack("B", tile.coding | faces << _FULL_FACES_SHIFT)
+        for value, full in zip((*tile.bounds_lo, *tile.bounds_hi), low_faces + high_faces):
+            if not full:
+                table.pack("H", value)
+        if tile.coding == TileCoding.network:
             table.pack("B", tile.post_filter)
-        table.varint(offset)
+        elif tile.post_filter != OFF:
+            raise ValueError("a post-filter on a tile without a network coding")
         table.varint(len(tile.payload))
         table.pack("I", zlib.crc32(tile.payload))
-        offset += len(tile.payload)
     entries = table.getvalue()
-    return b"".join([head, _TABLE_LENGTH.pack(len(entries)), entries, _CRC.pack(zlib.crc32(entries)),
-                     *(tile.payload for tile in tiles), attributes.serialise() if attributes else b""])
+    head = ByteWriter()
+    head.raw(_MAGIC_VERSION.pack(MAGIC, COMPACT_VERSION))
+    head.varint(0 if attributes is None else ATTRIBUTES_FLAG)
+    head.varint(len(body))
+    head.varint(len(entries))
+    head.raw(body + entries)
+    head = head.getvalue()
+    return b"".join([head, _CRC.pack(zlib.crc32(head)), *(tile.payload for tile in tiles),
+                     attributes.serialise() if attributes else b""])
 
 
 class ContainerReader:
@@ -277,26 +359,23 @@ class ContainerReader:
         self.name = name
         stream.seek(0, os.SEEK_END)
         self.file_size = stream.tell()
-        preamble = self._read_at(0, _PREAMBLE.size, "file is too short to be a .msq container")
-        magic, version, flags, body_length = _PREAMBLE.unpack(preamble)
+        magic, version = _MAGIC_VERSION.unpack(
+            self._read_at(0, _MAGIC_VERSION.size, "file is too short to be a .msq container"))
         if magic != MAGIC:
             raise self._error("not a .msq container (bad magic bytes)")
         if version not in READABLE_VERSIONS:
             raise self._error(f"unsupported .msq version {version} (this mapsqueeze reads versions "
                               f"{', '.join(map(str, READABLE_VERSIONS))})")
         self.version = version
+        flags, body, table, payload_start = (self._read_compact_head() if version >= COMPACT_VERSION
+                                             else self._read_head())
         if flags & ~ATTRIBUTES_FLAG:
             raise self._error(f"reserved flags 0x{flags & ~ATTRIBUTES_FLAG:04x} set (written by a newer mapsqueeze?)")
-        if body_length > MAX_HEADER_BYTES or _PREAMBLE.size + body_length + _CRC.size > self.file_size:
-            raise self._error(f"header of {body_length} bytes does not fit in the file (truncated?)")
-        body = self._read_at(_PREAMBLE.size, body_length + _CRC.size, "header truncated")
-        if zlib.crc32(preamble + body[:-_CRC.size]) != _CRC.unpack(body[-_CRC.size:])[0]:
-            raise self._error("header CRC mismatch (corrupt header)")
         try:
-            self.header = Header.parse(body[:-_CRC.size], version)
+            self.header = Header.parse(body, version)
         except ContainerError as exc:
             raise self._error(str(exc)) from None
-        self.entries = self._read_table(_PREAMBLE.size + body_length + _CRC.size)
+        self.entries = self._parse_table(table, payload_start)
         self.attribute_schema: AttributeSchema | None = None
         self.attribute_entries: list[tuple[int, int, int]] = []  # (offset, length, crc32) per tile
         payload_end = self.entries[-1].offset + self.entries[-1].length
@@ -347,29 +426,72 @@ class ContainerReader:
             raise self._error(truncated)
         return data
 
-    def _read_table(self, start: int) -> list[TileEntry]:
-        n_tiles = self.header.n_tiles
-        if n_tiles == 0:
-            raise self._error("the container holds no tiles")
+    def _read_head(self) -> tuple[int, bytes, bytes, int]:
+        """(flags, header body, tile table bytes, first payload byte) of a version 1 to 6 file, CRCs checked."""
+        preamble = self._read_at(0, _PREAMBLE.size, "file is too short to be a .msq container")
+        _, _, flags, body_length = _PREAMBLE.unpack(preamble)
+        if body_length > MAX_HEADER_BYTES or _PREAMBLE.size + body_length + _CRC.size > self.file_size:
+            raise self._error(f"header of {body_length} bytes does not fit in the file (truncated?)")
+        body = self._read_at(_PREAMBLE.size, body_length + _CRC.size, "header truncated")
+        if zlib.crc32(preamble + body[:-_CRC.size]) != _CRC.unpack(body[-_CRC.size:])[0]:
+            raise self._error("header CRC mismatch (corrupt header)")
+        start = _PREAMBLE.size + body_length + _CRC.size
         (table_size,) = _TABLE_LENGTH.unpack(self._read_at(start, _TABLE_LENGTH.size, "tile table truncated"))
         start += _TABLE_LENGTH.size
-        if start + table_size + _CRC.size > self.file_size or table_size < n_tiles * _MIN_ENTRY_BYTES:
-            raise self._error(f"tile table of {table_size} bytes for {n_tiles} tiles does not fit (truncated?)")
+        if start + table_size + _CRC.size > self.file_size:
+            raise self._error(f"tile table of {table_size} bytes does not fit (truncated?)")
         raw = self._read_at(start, table_size + _CRC.size, "tile table truncated")
         if zlib.crc32(raw[:table_size]) != _CRC.unpack(raw[table_size:])[0]:
             raise self._error("tile table CRC mismatch (corrupt tile table)")
-        reader = ByteReader(raw[:table_size], f"{self.name}: tile table")
-        payload_start = start + table_size + _CRC.size
+        return flags, body[:-_CRC.size], raw[:table_size], start + table_size + _CRC.size
+
+    def _read_compact_head(self) -> tuple[int, bytes, bytes, int]:
+        """(flags, header body, tile table bytes, first payload byte) of a version 7 file, the CRC checked."""
+        lead = self._read_at(0, min(self.file_size, _MAGIC_VERSION.size + 3 * 10), "file truncated")
+        reader = ByteReader(lead, f"{self.name}: preamble")
+        reader.raw(_MAGIC_VERSION.size)
+        try:
+            flags = reader.varint(limit=1 << 16)
+            body_length = reader.varint(limit=MAX_HEADER_BYTES + 1)
+            table_size = reader.varint(limit=2**32)
+        except ContainerError:
+            raise self._error("preamble truncated or malformed (truncated?)") from None
+        start = len(lead) - reader.remaining
+        end = start + body_length + table_size
+        if end + _CRC.size > self.file_size:
+            raise self._error(f"header of {body_length} and tile table of {table_size} bytes do not fit in the "
+                              "file (truncated?)")
+        head = self._read_at(0, end + _CRC.size, "header truncated")
+        if zlib.crc32(head[:end]) != _CRC.unpack(head[end:])[0]:
+            raise self._error("header CRC mismatch (corrupt header or tile table)")
+        return flags, head[start:start + body_length], head[start + body_length:end], end + _CRC.size
+
+    def _parse_table(self, table: bytes, payload_start: int) -> list[TileEntry]:
+        n_tiles = self.header.n_tiles
+        if n_tiles == 0:
+            raise self._error("the container holds no tiles")
+        compact = self.version >= COMPACT_VERSION
+        if len(table) < n_tiles * (_MIN_COMPACT_ENTRY_BYTES if compact else _MIN_ENTRY_BYTES):
+            raise self._error(f"tile table of {len(table)} bytes for {n_tiles} tiles does not fit (truncated?)")
+        reader = ByteReader(table, f"{self.name}: tile table")
         entries = []
         expected_offset = payload_start
         previous_index = None
         for position in range(n_tiles):
             index = tuple(reader.svarint(limit=_MAX_INDEX) for _ in range(3))
             n_points = reader.varint(limit=2**32)
-            *bounds, coding = reader.unpack("6HB")
+            if compact:
+                (byte,) = reader.unpack("B")
+                coding, faces = byte & ((1 << _FULL_FACES_SHIFT) - 1), byte >> _FULL_FACES_SHIFT
+                bounds = [(0 if bit < 3 else BOUNDS_STEPS) if faces >> bit & 1 else reader.unpack("H")[0]
+                          for bit in range(6)]
+                post_filter = reader.unpack("B")[0] if coding == TileCoding.network else OFF
+                offset = expected_offset
+            else:
+                *bounds, coding = reader.unpack("6HB")
+                post_filter = reader.unpack("B")[0] if self.version >= POST_FILTER_VERSION else OFF
+                offset = payload_start + reader.varint(limit=2**63)
             lo, hi = tuple(bounds[:3]), tuple(bounds[3:])
-            post_filter = reader.unpack("B")[0] if self.version >= POST_FILTER_VERSION else OFF
-            offset = payload_start + reader.varint(limit=2**63)
             length = reader.varint(limit=2**32)
             (crc,) = reader.unpack("I")
             label = TileEntry(index, n_points, lo, hi, TileCoding.network, offset, length, crc).label(position)

@@ -145,15 +145,30 @@ class Quantiser:
             features += turned[:, axis:axis + 1] * basis[:, axis]
         return features.astype(np.float32)
 
-    def write(self, writer: ByteWriter) -> None:
-        writer.varint(len(self.feature_mean))
-        writer.pack("4f", *self.position_m, self.feature_step)
+    def write(self, writer: ByteWriter, compact: bool = True) -> None:
+        """compact (format version 7): no channel count (the header's), one position step when x, y and z share it;
+        else varint D and the three steps."""
+        if compact:
+            position = self.position_m[:1] if len(set(self.position_m)) == 1 else self.position_m
+            writer.pack("B", len(position))
+            writer.pack(f"{len(position) + 1}f", *position, self.feature_step)
+        else:
+            writer.varint(len(self.feature_mean))
+            writer.pack("4f", *self.position_m, self.feature_step)
         writer.raw(self.feature_mean.astype("<f2").tobytes() + self.feature_basis.astype("<f2").tobytes())
 
     @classmethod
-    def read(cls, reader: ByteReader) -> "Quantiser":
-        dim = reader.varint(limit=65)
-        *position, feature_step = reader.unpack("4f")
+    def read(cls, reader: ByteReader, dim: int | None = None) -> "Quantiser":
+        """What `write` wrote; `dim` (the header's channel count) given for the compact form, None for the other."""
+        if dim is None:
+            dim = reader.varint(limit=65)
+            *position, feature_step = reader.unpack("4f")
+        else:
+            (n_steps,) = reader.unpack("B")
+            if n_steps not in (1, 3):
+                raise reader.fail(f"{n_steps} position steps (1 or 3)")
+            *position, feature_step = reader.unpack(f"{n_steps + 1}f")
+            position = position * (3 // n_steps)
         mean = np.frombuffer(reader.raw(2 * dim), dtype="<f2").astype(np.float16)
         basis = np.frombuffer(reader.raw(2 * dim * dim), dtype="<f2").astype(np.float16).reshape(dim, dim)
         if not all(np.isfinite(v) and v > 0 for v in (*position, feature_step)):
@@ -204,14 +219,15 @@ class QuantModel:
                    (Histogram.fit(offsets[:, :2]), Histogram.fit(offsets[:, 2])),
                    tuple(Histogram.fit(features[:, channel]) for channel in range(features.shape[1])))
 
-    def write(self, writer: ByteWriter) -> None:
-        self.quantiser.write(writer)
+    def write(self, writer: ByteWriter, compact: bool = True) -> None:
+        self.quantiser.write(writer, compact)
         for histogram in (self.gaps, *self.offsets, *self.features):
             histogram.write(writer)
 
     @classmethod
-    def read(cls, reader: ByteReader, grid: CellGrid) -> "QuantModel":
-        quantiser = Quantiser.read(reader)
+    def read(cls, reader: ByteReader, grid: CellGrid, dim: int | None = None) -> "QuantModel":
+        """What `write` wrote: `dim` given for the compact form (see `Quantiser.read`)."""
+        quantiser = Quantiser.read(reader, dim)
         gaps = Histogram.read(reader)
         offsets = (Histogram.read(reader), Histogram.read(reader))
         features = tuple(Histogram.read(reader) for _ in range(len(quantiser.feature_mean)))

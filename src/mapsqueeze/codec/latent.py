@@ -60,11 +60,12 @@ class LatentCodec(ABC):
         (q: histograms refitted, quantiser kept); a stateless codec returns itself."""
         return self
 
-    def write(self, writer: ByteWriter) -> None:
-        """Append the codec's map-wide state to the header (nothing for a stateless codec)."""
+    def write(self, writer: ByteWriter, compact: bool = True) -> None:
+        """Append the codec's map-wide state to the header (nothing for a stateless codec); compact: the form of
+        format version 7 (fields the layout gives left out), else that of versions 1 to 6."""
 
     @classmethod
-    def read(cls, reader: ByteReader, layout: LatentLayout) -> LatentCodec:
+    def read(cls, reader: ByteReader, layout: LatentLayout, compact: bool = True) -> LatentCodec:
         """The codec whose state `write` put at the reader's position."""
         return cls(layout)
 
@@ -156,12 +157,12 @@ class QuantisedCodec(LatentCodec):
         quantised = [quantise(points, features, grid, quantiser) for points, features in embeddings]
         return QuantisedCodec(self.layout, QuantModel.fit(quantised, grid, quantiser))
 
-    def write(self, writer: ByteWriter) -> None:
-        self.model.write(writer)
+    def write(self, writer: ByteWriter, compact: bool = True) -> None:
+        self.model.write(writer, compact)
 
     @classmethod
-    def read(cls, reader: ByteReader, layout: LatentLayout) -> QuantisedCodec:
-        model = QuantModel.read(reader, cls.grid(layout))
+    def read(cls, reader: ByteReader, layout: LatentLayout, compact: bool = True) -> QuantisedCodec:
+        model = QuantModel.read(reader, cls.grid(layout), layout.n_features if compact else None)
         if len(model.features) != layout.n_features:
             raise reader.fail("quantiser channel count differs from the embedding's")
         return cls(layout, model)
