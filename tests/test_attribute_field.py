@@ -146,16 +146,14 @@ def test_version_2_files_still_decode_as_they_did():
                        "classification": "84a4155f2abd0de42b09350903dbae57df59f352bed8e260c04b1b0eb80a26f9"}
 
 
-def test_container_version_3_and_its_attributes_follow_the_decoded_geometry():
-    """The written version is 3 (5 where a tile has patch planes); a decoded point's values are those of the
-    nearest voxel of the default decode."""
+def test_container_version_7_and_its_attributes_follow_the_decoded_geometry():
+    """The written version is 7 (attribute streams on the decoded geometry since version 3); a decoded point's
+    values are those of the nearest voxel of the default decode."""
     from test_attributes import street
 
     points, intensity, classification, _ = street(6000, 2000)
     data = mapsqueeze.compress(points, attributes={"intensity": intensity, "cls": classification})
-    reader, stream = open_container(data)
-    stream.close()
-    assert struct.unpack("<H", data[4:6])[0] == (5 if any(entry.post_filter for entry in reader.entries) else 3)
+    assert struct.unpack("<H", data[4:6])[0] == 7
     default = mapsqueeze.decompress_cloud(data)
     sparse = mapsqueeze.decompress_cloud(data, n_points=3000)
     from pykdtree.kdtree import KDTree
