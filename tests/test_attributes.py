@@ -15,11 +15,11 @@ from pykdtree.kdtree import KDTree
 import mapsqueeze
 from mapsqueeze.codec.attributes import parse_selection
 from mapsqueeze.codec.compress import AttributeOptions
+from mapsqueeze.codec.entropy import ByteReader
 from mapsqueeze.errors import ContainerError, InvalidPointCloudError
 from mapsqueeze.io import read_point_cloud, write_points
 
 UTM = np.array([500000.0, 4000000.0, 40.0])
-PREAMBLE = struct.Struct("<4sHHI")
 
 
 def street(n_ground: int = 24000, n_wall: int = 8000, seed: int = 0):
@@ -54,20 +54,25 @@ def assert_quality(original_points, decoded_points, original, decoded, continuou
 
 
 def strip_attribute_section(data: bytes, plain_length: int) -> bytes:
-    """The file without its attribute section: flags cleared (and the header CRC, which covers them, redone)."""
-    magic, version, _, length = PREAMBLE.unpack(data[:PREAMBLE.size])
-    head = PREAMBLE.pack(magic, version, 0, length) + data[PREAMBLE.size:PREAMBLE.size + length]
-    return head + struct.pack("<I", zlib.crc32(head)) + data[len(head) + 4:plain_length]
+    """The file without its attribute section: flags cleared (and the header CRC, which covers them, redone;
+    version 7: the one-byte flags varint at byte 6, the CRC after the header and the table)."""
+    out = bytearray(data[:plain_length])
+    out[6] = 0
+    lengths = ByteReader(bytes(out[7:27]), "preamble")
+    body, table = lengths.varint(), lengths.varint()
+    end = 7 + 20 - lengths.remaining + body + table
+    struct.pack_into("<I", out, end, zlib.crc32(bytes(out[:end])))
+    return bytes(out)
 
 
 def test_files_without_attributes_are_byte_identical_and_attributes_follow_the_geometry():
     points, intensity, classification, _ = street(6000, 2000)
     plain = mapsqueeze.compress(points)
-    assert PREAMBLE.unpack(plain[:PREAMBLE.size])[2] == 0
+    assert plain[4:7] == bytes([7, 0, 0])  # version 7, flags 0
     assert mapsqueeze.compress(points, attributes={"intensity": intensity},
                                attribute_options=AttributeOptions("none")) == plain
     with_attributes = mapsqueeze.compress(points, attributes={"intensity": intensity, "cls": classification})
-    assert PREAMBLE.unpack(with_attributes[:PREAMBLE.size])[2] == 1
+    assert with_attributes[6] == 1
     assert strip_attribute_section(with_attributes, len(plain)) == plain
     np.testing.assert_array_equal(mapsqueeze.decompress(with_attributes), mapsqueeze.decompress(plain))
     assert mapsqueeze.info(plain).attribute_schema is None

@@ -191,10 +191,10 @@ def test_the_default_writes_patch_choices_that_raise_iou_and_decode_the_same_on_
     with stream:
         entries = reader.entries
         payloads = [reader.payload(position) for position in range(len(entries))]
-    assert reader.version == 6 and PATCH_CHOICES in {entry.post_filter for entry in entries}
+    assert reader.version == 7 and PATCH_CHOICES in {entry.post_filter for entry in entries}
     decoded = mapsqueeze.decompress(default, model=model, workers=1)
     assert mapsqueeze.decompress(default, model=model, workers=2).tobytes() == decoded.tobytes()
-    # the same embeddings with the choice streams taken out and per-tile patch planes: version 5, lower IoU
+    # the same embeddings with the choice streams taken out and per-tile patch planes: lower IoU
     records = []
     for entry, payload in zip(entries, payloads):
         if entry.post_filter == PATCH_CHOICES:
@@ -203,7 +203,6 @@ def test_the_default_writes_patch_choices_that_raise_iou_and_decode_the_same_on_
         records.append(TileRecord(entry.index, entry.n_points, entry.bounds_lo, entry.bounds_hi, entry.coding,
                                   payload, setting))
     per_tile = serialise_container(reader.header, records)
-    assert open_container(per_tile)[0].version == 5
     assert iou(points, decoded) > iou(points, mapsqueeze.decompress(per_tile, model=model, workers=1)) + 0.01
     assert mapsqueeze.info(default).tile_modes.get("network (patch planes chosen per patch)", 0) >= 1
 
@@ -211,10 +210,12 @@ def test_the_default_writes_patch_choices_that_raise_iou_and_decode_the_same_on_
 def test_the_paper_mode_and_rate_targets_write_no_choices(cluttered):
     points, model = cluttered
     f16 = mapsqueeze.compress(points, model=model, precision="f16", workers=1)  # choices on f16 embeddings too
-    assert open_container(f16)[0].version == 6 and len(mapsqueeze.decompress(f16, model=model, workers=1))
-    assert open_container(mapsqueeze.compress(points, model=model, post_filter="off", workers=1))[0].version == 3
+    assert PATCH_CHOICES in {entry.post_filter for entry in open_container(f16)[0].entries}
+    assert len(mapsqueeze.decompress(f16, model=model, workers=1))
+    paper = open_container(mapsqueeze.compress(points, model=model, post_filter="off", workers=1))[0]
+    assert {entry.post_filter for entry in paper.entries} == {0}
     reader = open_container(mapsqueeze.compress(points, model=model, bpp=0.5, workers=1))[0]
-    assert all(entry.post_filter != PATCH_CHOICES for entry in reader.entries) and reader.version <= 5
+    assert all(entry.post_filter != PATCH_CHOICES for entry in reader.entries)
 
 
 def test_a_corrupt_choice_stream_in_a_file_is_a_container_error(cluttered):

@@ -179,24 +179,24 @@ def test_a_post_filtered_file_signals_a_filter_that_the_decoder_applies(e0_tile,
     reader, stream = open_container(filtered)
     with stream:
         settings = [entry.post_filter for entry in reader.entries]
-    assert reader.version == 4 and any(s in CANDIDATES and s != OFF for s in settings)
-    assert len(filtered) == len(paper) + len(settings)  # one byte per tile, the payloads unchanged
+    assert reader.version == 7 and any(s in CANDIDATES and s != OFF for s in settings)
+    assert len(filtered) == len(paper)  # only the network tiles' post-filter bytes differ, the payloads unchanged
     with_filter, without = (mapsqueeze.decompress(data, model=model, workers=1) for data in (filtered, paper))
     assert iou(points, with_filter) > iou(points, without)
 
 
 def test_paper_mode_is_unchanged(e0_tile, filtered_and_paper):
-    """--post-filter off writes the version 3 bytes of the paper's decode."""
+    """--post-filter off writes every post-filter byte off (the paper's decode)."""
     _, paper = filtered_and_paper
-    assert open_container(paper)[0].version == 3
+    assert open_container(paper)[0].version == 7
     reader, stream = open_container(paper)
     with stream:
         assert all(entry.post_filter == OFF for entry in reader.entries)
 
 
 def test_the_default_signals_patch_planes_that_the_decoder_applies(e0_tile, filtered_and_paper):
-    """The default (patch) differs from the paper's file only in the tile table's post-filter bytes (version 5)
-    and its decode has a higher IoU; a version 4 file may not carry PATCH."""
+    """The default (patch) differs from the paper's file only in the tile table's post-filter bytes and its decode
+    has a higher IoU; a version 4 file may not carry PATCH."""
     points, model = e0_tile
     _, paper = filtered_and_paper
     default = mapsqueeze.compress(points, model=model, workers=1)
@@ -204,8 +204,8 @@ def test_the_default_signals_patch_planes_that_the_decoder_applies(e0_tile, filt
     reader, stream = open_container(default)
     with stream:
         settings = [entry.post_filter for entry in reader.entries]
-    assert reader.version == 5 and set(settings) <= {OFF, *PATCH_CANDIDATES} and set(settings) & set(PATCH_CANDIDATES)
-    assert len(default) == len(paper) + len(settings)
+    assert reader.version == 7 and set(settings) <= {OFF, *PATCH_CANDIDATES} and set(settings) & set(PATCH_CANDIDATES)
+    assert len(default) == len(paper)
     assert _rewritten(default, [OFF] * len(settings)) == paper
     with_filter, without = (mapsqueeze.decompress(data, model=model, workers=1) for data in (default, paper))
     assert iou(points, with_filter) > iou(points, without)
@@ -234,7 +234,7 @@ def test_the_per_tile_setting_round_trips_and_bad_ones_are_refused(e0_tile, filt
     settings = [CANDIDATES[(i + 1) % len(CANDIDATES)] for i in range(n_tiles)]
     rewritten = _rewritten(paper, settings)
     assert [entry.post_filter for entry in open_container(rewritten)[0].entries] == settings
-    assert _rewritten(filtered, [OFF] * n_tiles) == paper  # all settings off: version 3, the paper's bytes
+    assert _rewritten(filtered, [OFF] * n_tiles) == paper  # all settings off: the paper's bytes
     with pytest.raises(ContainerError, match="post-filter"):
         open_container(_rewritten(paper, [0x40] * n_tiles))
 

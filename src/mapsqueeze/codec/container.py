@@ -369,8 +369,6 @@ class ContainerReader:
         self.version = version
         flags, body, table, payload_start = (self._read_compact_head() if version >= COMPACT_VERSION
                                              else self._read_head())
-        if flags & ~ATTRIBUTES_FLAG:
-            raise self._error(f"reserved flags 0x{flags & ~ATTRIBUTES_FLAG:04x} set (written by a newer mapsqueeze?)")
         try:
             self.header = Header.parse(body, version)
         except ContainerError as exc:
@@ -426,10 +424,16 @@ class ContainerReader:
             raise self._error(truncated)
         return data
 
+    def _check_flags(self, flags: int) -> None:
+        """Refused before any CRC: a file of a newer writer names the feature this reader lacks."""
+        if flags & ~ATTRIBUTES_FLAG:
+            raise self._error(f"reserved flags 0x{flags & ~ATTRIBUTES_FLAG:04x} set (written by a newer mapsqueeze?)")
+
     def _read_head(self) -> tuple[int, bytes, bytes, int]:
         """(flags, header body, tile table bytes, first payload byte) of a version 1 to 6 file, CRCs checked."""
         preamble = self._read_at(0, _PREAMBLE.size, "file is too short to be a .msq container")
         _, _, flags, body_length = _PREAMBLE.unpack(preamble)
+        self._check_flags(flags)
         if body_length > MAX_HEADER_BYTES or _PREAMBLE.size + body_length + _CRC.size > self.file_size:
             raise self._error(f"header of {body_length} bytes does not fit in the file (truncated?)")
         body = self._read_at(_PREAMBLE.size, body_length + _CRC.size, "header truncated")
@@ -456,6 +460,7 @@ class ContainerReader:
             table_size = reader.varint(limit=2**32)
         except ContainerError:
             raise self._error("preamble truncated or malformed (truncated?)") from None
+        self._check_flags(flags)
         start = len(lead) - reader.remaining
         end = start + body_length + table_size
         if end + _CRC.size > self.file_size:
