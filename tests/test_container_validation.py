@@ -20,13 +20,13 @@ from hypothesis import strategies as st
 import mapsqueeze
 from mapsqueeze.codec.container import (
     DEFAULT_MAX_TILE_POINTS,
-    DefaultCount,
     TileCoding,
     TileRecord,
     open_container,
     serialise_container,
 )
 from mapsqueeze.codec.entropy import ByteReader
+from mapsqueeze.codec.header import DefaultCount
 from mapsqueeze.codec.postfilter import PATCH_CHOICES, PATCH_OPTIONS, encode_patch_choices
 from mapsqueeze.codec.rawtile import encode_raw_tile
 from mapsqueeze.errors import ContainerError, DecodeLimitError, MapsqueezeError, ModelError

@@ -19,8 +19,6 @@ from mapsqueeze.codec.attributes import (
 )
 from mapsqueeze.codec.container import (
     AttributeSection,
-    DefaultCount,
-    Header,
     TileCoding,
     TileRecord,
     serialise_container,
@@ -28,6 +26,7 @@ from mapsqueeze.codec.container import (
 from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
 from mapsqueeze.codec.entropy import ByteWriter
 from mapsqueeze.codec.executor import ProgressCallback, open_executor, start_pool_server
+from mapsqueeze.codec.header import DefaultCount, Header
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
 from mapsqueeze.codec.postfilter import OFF, PATCH_CHOICES, patch_choice_prefix

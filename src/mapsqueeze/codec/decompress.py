@@ -16,14 +16,13 @@ from mapsqueeze.codec.container import (
     MAX_POINTS_PER_TILE,
     SUPPORT_CRC_VERSION,
     ContainerReader,
-    DefaultCount,
-    Header,
     TileCoding,
     TileEntry,
     frame_origin,
     open_container,
 )
 from mapsqueeze.codec.executor import ProgressCallback, open_executor
+from mapsqueeze.codec.header import DefaultCount, Header
 from mapsqueeze.codec.octreetile import decode_octree_tile
 from mapsqueeze.codec.postfilter import PostFilter, decode_patch_choices, split_patch_choices
 from mapsqueeze.codec.rawtile import decode_raw_tile

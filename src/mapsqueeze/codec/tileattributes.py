@@ -8,9 +8,10 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from mapsqueeze.codec.attributes import AttributeSchema, encode_tile_attributes
-from mapsqueeze.codec.container import Header, open_container
+from mapsqueeze.codec.container import open_container
 from mapsqueeze.codec.decompress import WORKER_MODULES, attribute_support, tile_frame
 from mapsqueeze.codec.executor import open_executor
+from mapsqueeze.codec.header import Header
 from mapsqueeze.geometry.tiling import to_local
 
 
