@@ -113,6 +113,22 @@ def test_histogram_stream_round_trips(values, big):
     reader.finish()
 
 
+def test_a_histogram_whose_model_was_built_pickles_and_still_codes():
+    """Dask ships the map's header (its histograms) to the workers after the coordinator has coded with them."""
+    import pickle
+
+    values = np.array([0, 1, 1, 2, 2, 2, 5, 9, 9, 9])
+    histogram = Histogram.fit(values)
+    symbols = SymbolWriter()
+    symbols.histogram(values, histogram)  # builds and caches the constriction model
+    copy = pickle.loads(pickle.dumps(histogram))
+    assert (copy.low, copy.width) == (histogram.low, histogram.width)
+    np.testing.assert_array_equal(copy.codes, histogram.codes)
+    reader = SymbolReader(symbols.getvalue(), "test")
+    np.testing.assert_array_equal(reader.histogram(copy, len(values)), values)
+    reader.finish()
+
+
 def test_histogram_codes_skewed_data_near_its_entropy():
     rng = np.random.default_rng(0)
     values = np.round(rng.laplace(0, 4, 20000)).astype(int)

@@ -127,6 +127,10 @@ class Histogram:
         """Unnormalised float64 probability of every value of the alphabet (constriction normalises)."""
         return np.repeat(_WEIGHTS[self.codes].astype(np.float64), self.width)
 
+    def __reduce__(self):
+        """Pickled without the cached constriction model, which cannot be pickled (Dask ships headers to workers)."""
+        return (Histogram, (self.low, self.width, self.codes))
+
     def model(self):
         if self._model is None:
             probabilities = self.probabilities()
