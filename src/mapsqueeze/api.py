@@ -368,7 +368,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                     local = tile.take()
                     sizes.append(len(local))
                     for start in range(0, len(local), PLACE_CHUNK_POINTS):
-                        yield tile.frame + local[start:start + PLACE_CHUNK_POINTS]
+                        yield tile.place(local[start:start + PLACE_CHUNK_POINTS])
                     del tile, local  # released before the next tile arrives
             else:
                 for cloud in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress,

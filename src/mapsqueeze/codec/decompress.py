@@ -229,7 +229,7 @@ def iter_decoded_clouds(
     box = None if bbox is None else parse_bbox(bbox)
     for tile in iter_tile_points(source, model, bbox, density, n_points, progress, max_tile_points, attributes,
                                  workers, dask_scheduler):
-        world, values = tile.frame + tile.take(), tile.values
+        world, values = tile.place(tile.take()), tile.values
         if box is not None:
             inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
             world, values = world[inside], {name: v[inside] for name, v in values.items()}
@@ -250,6 +250,14 @@ class DecodedTile:
         as the caller is done with them)."""
         points, self._points = self._points, None
         return points
+
+    def place(self, points: np.ndarray) -> np.ndarray:
+        """float64 world points `frame` + `points` of (k, 3) float32 rows of this tile, added column by column
+        (numpy's (k, 3) + (3,) runs a 3-long inner loop per row, ~4x slower; the same sums)."""
+        world = points.astype(np.float64)
+        for axis in range(3):
+            world[:, axis] += self.frame[axis]
+        return world
 
 
 def iter_tile_points(

@@ -64,7 +64,10 @@ def morton_rank(points: np.ndarray) -> np.ndarray:
     low, high = bounding_box(points)
     extent = float((high - low).max())
     scale = ((1 << SPREAD_BITS) - 1) / extent if extent > 0 else 0.0
-    return morton_codes(np.floor((points - low) * scale).astype(np.int64), SPREAD_BITS)
+    cells = np.empty(points.shape, dtype=np.int64)
+    for axis in range(3):  # column by column: numpy's (N, 3) - (3,) runs a 3-long inner loop per row (same values)
+        cells[:, axis] = np.floor((points[:, axis] - low[axis]) * scale)
+    return morton_codes(cells, SPREAD_BITS)
 
 
 def _morton_order(points: np.ndarray) -> np.ndarray:

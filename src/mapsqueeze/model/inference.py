@@ -230,7 +230,8 @@ class InferenceNetwork:
         for block in self.decoder:
             points, features = self._deconv_forward(block, points, features)
         np.matmul(features, self.refine[0], out=out)
-        out += self.refine[1]
+        for axis in range(3):  # column by column: numpy's (K, 3) + (3,) runs a 3-long inner loop per row
+            out[:, axis] += self.refine[1][axis]
         out += points
 
     def _deconv_forward(self, block: _Deconv, points: np.ndarray, features: np.ndarray
