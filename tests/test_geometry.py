@@ -8,10 +8,12 @@ from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors
 from mapsqueeze.geometry.threads import set_threads, threads
 from mapsqueeze.geometry.morton import (
     MAX_BITS,
+    SPREAD_BITS,
     bit_reversal_order,
     coarse_to_fine_subset,
     morton_cells,
     morton_codes,
+    morton_rank,
     spread_subset,
 )
 
@@ -184,3 +186,11 @@ def test_select_rows_is_boolean_indexing():
                 chosen = select_rows(array, mask)
                 assert chosen.dtype == dtype and chosen.shape == (mask.sum(), 3)
                 assert np.array_equal(chosen, array[mask])
+
+
+def test_morton_rank_cells_are_the_broadcast_formulas():
+    """Cells computed column by column hold the values of (points - low) * scale floored over the whole array."""
+    points = np.random.default_rng(5).normal(size=(20_000, 3)) * [20.0, 20.0, 3.0] + [3.7, -12.1, 0.4]
+    low, extent = points.min(axis=0), float((points.max(axis=0) - points.min(axis=0)).max())
+    cells = np.floor((points - low) * (((1 << SPREAD_BITS) - 1) / extent)).astype(np.int64)
+    np.testing.assert_array_equal(morton_rank(points), morton_codes(cells, SPREAD_BITS))

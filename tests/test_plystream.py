@@ -4,6 +4,7 @@ coordinates' float32 rounding (the decoder writes its tiles with it, `api.decomp
 import numpy as np
 import pytest
 
+from mapsqueeze.codec.decompress import DecodedTile
 from mapsqueeze.errors import InvalidPointCloudError
 from mapsqueeze.io import ply, write_points
 from mapsqueeze.io.pointcloud import FLOAT32_SAFE_ABS_M
@@ -51,3 +52,13 @@ def test_narrowed_body_moves_behind_a_longer_header(tmp_path, monkeypatch, move_
     expected = (tmp_path / "expected.ply").read_bytes()
     assert b"property float x" in expected and b"element vertex 20001" in expected
     assert (tmp_path / "streamed.ply").read_bytes() == expected
+
+
+@pytest.mark.parametrize("frame", [(0.0, 0.0, 0.0), (612_345.678, 4_567_890.123, -31.4)])
+def test_a_tile_is_placed_as_frame_plus_points(frame):
+    """`DecodedTile.place` adds column by column: the float64 sums of the broadcast frame + points, bit for bit."""
+    points = np.random.default_rng(3).uniform(0, 40, (10_001, 3)).astype(np.float32)
+    tile = DecodedTile(np.array(frame), points, {}, {})
+    placed = tile.place(tile.take()[1:])  # a slice, as the writer places a tile part by part
+    assert placed.dtype == np.float64
+    np.testing.assert_array_equal(placed.view(np.int64), (np.array(frame) + points[1:]).view(np.int64))
