@@ -9,11 +9,13 @@ gradients are averaged, and process 0 alone validates and writes the checkpoints
 from __future__ import annotations
 
 import csv
+import gc
 import hashlib
 import json
 import math
 import os
 import socket
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -255,6 +257,7 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
 
     try:
         summary = _train(dataset, Path(out_dir), model_config, cfg, dev, resume, init, progress, process)
+        gc.collect()  # the DDP wrapper's reducer holds the process group: free it before the group goes
         dist.barrier()  # a process that tears down its gloo pairs while another still uses them aborts (SIGABRT)
         return summary
     finally:
@@ -415,3 +418,8 @@ def _train_process(rank: int, nproc: int, port: int, *args) -> None:
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(nproc), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     train(*args)
+    # The process group is destroyed; leave without running C++ static destructors, which can still find a gloo
+    # thread joinable at interpreter exit and abort ("terminate called without an active exception").
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
