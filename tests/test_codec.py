@@ -113,6 +113,12 @@ def test_histogram_stream_round_trips(values, big):
     reader.finish()
 
 
+def test_a_histogram_constriction_cannot_normalise_is_a_container_error():
+    """Histogram.read accepts alphabets up to 2^24 values; one constriction rejects is a corrupt file, not a crash."""
+    with pytest.raises(ContainerError, match="entropy table of 16,777,215 values is not usable"):
+        Histogram(0, 2**24 - 1, np.array([5], dtype=np.uint8)).model()
+
+
 def test_a_histogram_whose_model_was_built_pickles_and_still_codes():
     """Dask ships the map's header (its histograms) to the workers after the coordinator has coded with them."""
     import pickle

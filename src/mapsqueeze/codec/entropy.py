@@ -136,7 +136,11 @@ class Histogram:
             probabilities = self.probabilities()
             if probabilities.sum() == 0:  # a corrupt table; keep it decodable, the CRC has already failed
                 probabilities = np.ones_like(probabilities)
-            object.__setattr__(self, "_model", constriction.stream.model.Categorical(probabilities, perfect=False))
+            try:
+                model = constriction.stream.model.Categorical(probabilities, perfect=False)
+            except ValueError as exc:  # e.g. an alphabet constriction cannot normalise (a crafted table)
+                raise ContainerError(f"entropy table of {len(probabilities):,} values is not usable: {exc}") from None
+            object.__setattr__(self, "_model", model)
         return self._model
 
     def bits(self, values: np.ndarray) -> float:
