@@ -187,12 +187,31 @@ def test_a_shipped_model_is_named_by_a_digest_prefix_and_its_config(shipped_file
         mapsqueeze.decompress(custom)
 
 
-def test_a_shipped_model_of_other_weights_or_an_unknown_one_is_refused(shipped_file):
+def test_a_shipped_model_of_other_weights_needs_a_model_of_its_prefix_and_an_unknown_one_is_refused(shipped_file):
+    """A file written by a build whose e0 has other weights still reads (info) and decodes with a model whose
+    digest starts with the file's prefix; this build's e0 is refused with the ModelError naming --model."""
+    import types
+
+    from mapsqueeze.codec.decompress import check_model
+    from mapsqueeze.model.shipped import shipped_weights_sha256
+
     start, _, _ = head_layout(shipped_file)
     other = bytearray(shipped_file)
     other[start + 11] ^= 1  # the digest prefix's last byte
-    with pytest.raises(ContainerError, match="shipped model 'e0' of weights sha256 .*, this mapsqueeze ships"):
-        mapsqueeze.info(with_head_crc(other))
+    other = with_head_crc(other)
+    prefix = bytes(other[start + 4:start + 12]).hex()
+    summary = mapsqueeze.info(other)
+    assert summary.model_id == "e0" and summary.weights_sha256 == prefix
+    with pytest.raises(ModelError, match="pass the model used for compression"):
+        mapsqueeze.decompress(other)
+    reader, stream = open_container(other)
+    stream.close()
+    body = reader.header.serialise()  # the prefix is written back in a shipped model's layout
+    assert body[2:4] == b"e0" and body[4:12] == bytes.fromhex(prefix)
+    check_model(types.SimpleNamespace(weights_sha256=prefix + "0" * 48, model_id="e0"), reader.header, "f")
+    with pytest.raises(ModelError):
+        check_model(types.SimpleNamespace(weights_sha256=shipped_weights_sha256("e0"), model_id="e0"),
+                    reader.header, "f")
     unknown = bytearray(shipped_file)
     unknown[start + 3:start + 4] = b"9"  # e9: no such shipped model
     with pytest.raises(ContainerError, match="names shipped model 'e9', which this mapsqueeze does not ship"):

@@ -71,15 +71,17 @@ class Header:
         name = self.model_id.encode()
         if len(name) > 255:
             raise ValueError("model id longer than 255 bytes")
-        shipped = shipped_layout(self.model_id) == (self.weights_sha256, self.subsampling_dist_m,
-                                                    tuple(self.tile_size), self.n_features)
+        layout = shipped_layout(self.model_id)
+        shipped = layout is not None and layout[1:] == (self.subsampling_dist_m, tuple(self.tile_size),
+                                                        self.n_features) and (
+            layout[0] == self.weights_sha256 or len(self.weights_sha256) == 2 * _SHIPPED_DIGEST_BYTES)
         raw_step = self.raw_step_m != DEFAULT_RAW_STEP_M
         writer.pack("BB", self.precision | (_BODY_NATIVE_COUNT if self.default_count is DefaultCount.native else 0)
                     | (_BODY_SHIPPED if shipped else 0) | (_BODY_RAW_STEP if raw_step else 0), len(name))
         writer.raw(name)
         digest = bytes.fromhex(self.weights_sha256)
-        if len(digest) != 32:
-            raise ValueError("weights digest must be a SHA-256")
+        if len(digest) != 32 and not (shipped and len(digest) == _SHIPPED_DIGEST_BYTES):
+            raise ValueError("weights digest must be a SHA-256 (or a shipped model's prefix)")
         writer.raw(digest[:_SHIPPED_DIGEST_BYTES] if shipped else digest)
         if not shipped:
             writer.pack("d3dB", self.subsampling_dist_m, *self.tile_size, self.n_features)
@@ -130,9 +132,8 @@ class Header:
             if shipped is None:
                 raise reader.fail(f"names shipped model {model_id!r}, which this mapsqueeze does not ship")
             sha, r_s, tile_size, n_features = shipped
-            if not sha.startswith(prefix):
-                raise reader.fail(f"written with shipped model {model_id!r} of weights sha256 {prefix}..., this "
-                                  f"mapsqueeze ships {model_id!r} with {sha[:2 * _SHIPPED_DIGEST_BYTES]}...")
+            if not sha.startswith(prefix):  # another build's weights of this rate point: only the prefix is known,
+                sha = prefix                # and decoding needs a model whose digest starts with it (check_model)
         else:
             sha = reader.raw(32).hex()
             r_s, *tile_size, n_features = reader.unpack("d3dB")
