@@ -235,12 +235,15 @@ def _support_values(stream: bytes, support: np.ndarray, schema: AttributeSchema,
                     crc_optional: bool) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """The support's codes, each support point's voxel and each attribute's values per voxel: the stream's support
     as stated by its count and CRC (repaired, `attrsupport.repaired_support`) or, with crc_optional and a CRC that
-    does not match, the decoded tile's support when the stream parses exactly without the CRC."""
+    matches no repair, the decoded tile's support when the stream parses exactly without the CRC."""
     codes, voxel = support_voxels(support, tile_size, schema.voxel_m)
     reader = ByteReader(stream, what)
     n_voxels, crc = read_support_check(reader)
     if support_matches(codes, n_voxels, crc):
         return codes, voxel, _voxel_values(reader, codes, schema)
+    repaired = repaired_support(support, n_voxels, crc, tile_size, schema.voxel_m)
+    if repaired is not None:  # first: a stream with the CRC matches a repaired support only by a 2^-32 chance
+        return *repaired, _voxel_values(reader, repaired[0], schema)
     without_crc = ""
     if crc_optional:  # such a stream has 4 bytes after its count too: every histogram takes at least 4
         legacy = ByteReader(stream, what)
@@ -248,12 +251,9 @@ def _support_values(stream: bytes, support: np.ndarray, schema: AttributeSchema,
             if legacy.varint(limit=2**40) != len(codes):
                 raise legacy.fail(f"its voxel count is not the decoded tile's {len(codes)}")
             return codes, voxel, _voxel_values(legacy, codes, schema)
-        except ContainerError as error:
+        except (ContainerError, ValueError, IndexError, OverflowError) as error:
             without_crc = (", and read without the CRC (versions 3 and 4 written before it) "
                            + str(error).removeprefix(f"{what}: "))
-    repaired = repaired_support(support, n_voxels, crc, tile_size, schema.voxel_m)
-    if repaired is not None:
-        return *repaired, _voxel_values(reader, repaired[0], schema)
     raise reader.fail(f"attribute stream's support ({n_voxels} voxels, CRC {crc:08x}) does not match the decoded "
                       f"tile's ({len(codes)} voxels, CRC {support_crc(codes):08x}) even after moving points on voxel "
                       f"faces{without_crc} (decompress --no-attributes decodes the geometry alone)")
