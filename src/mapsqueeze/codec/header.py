@@ -174,7 +174,7 @@ class Header:
         return header
 
 
-@functools.lru_cache(maxsize=None)
+@functools.lru_cache(maxsize=16)  # keyed by a name read from the file: bounded for a long-running decoder
 def shipped_layout(model_id: str) -> tuple[str, float, tuple[float, float, float], int] | None:
     """(weights SHA-256 hex, r_s, tile size, embedding channels) of the shipped model `model_id`, or None when no
     shipped model has that name: what a version 7 header naming a shipped model leaves out."""
