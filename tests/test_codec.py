@@ -113,6 +113,18 @@ def test_histogram_stream_round_trips(values, big):
     reader.finish()
 
 
+def test_varints_round_trip_and_an_overlong_one_is_refused():
+    writer = ByteWriter()
+    for value in (0, 1, 127, 128, 300, 2**40):
+        writer.varint(value)
+    reader = ByteReader(writer.getvalue(), "test")
+    assert [reader.varint() for _ in range(6)] == [0, 1, 127, 128, 300, 2**40]
+    reader.expect_end()
+    for overlong in (b"\x80\x00", b"\x81\x80\x00"):
+        with pytest.raises(ContainerError, match="overlong varint"):
+            ByteReader(overlong, "test").varint()
+
+
 def test_a_histogram_constriction_cannot_normalise_is_a_container_error():
     """Histogram.read accepts alphabets up to 2^24 values; one constriction rejects is a corrupt file, not a crash."""
     with pytest.raises(ContainerError, match="entropy table of 16,777,215 values is not usable"):

@@ -75,12 +75,15 @@ class ByteReader:
         return struct.unpack("<" + fmt, self.raw(struct.calcsize("<" + fmt)))
 
     def varint(self, limit: int = 2**63) -> int:
-        """An unsigned varint, refused if it is >= `limit` (callers pass the largest sane value + 1)."""
+        """An unsigned varint, refused if it is >= `limit` (callers pass the largest sane value + 1) or written with
+        more bytes than it needs (a last byte of 0 after the first: the writer never does, so a file has one form)."""
         value = 0
         for shift in range(0, 7 * _MAX_VARINT_BYTES, 7):
             byte = self.raw(1)[0]
             value |= (byte & 0x7F) << shift
             if not byte & 0x80:
+                if byte == 0 and shift:
+                    raise self.fail("overlong varint")
                 if value >= limit:
                     raise self.fail(f"value {value} out of range (limit {limit - 1})")
                 return value
