@@ -194,3 +194,20 @@ def test_morton_rank_cells_are_the_broadcast_formulas():
     low, extent = points.min(axis=0), float((points.max(axis=0) - points.min(axis=0)).max())
     cells = np.floor((points - low) * (((1 << SPREAD_BITS) - 1) / extent)).astype(np.int64)
     np.testing.assert_array_equal(morton_rank(points), morton_codes(cells, SPREAD_BITS))
+
+
+def test_spread_subset_is_every_nth_of_the_stable_sort_of_the_codes():
+    """The radix passes over the codes' 16-bit words and the mask of the picks give the indices of numpy's stable
+    argsort of `morton_rank`, sorted: codes using all 48 bits, many ties (repeated and coincident points), float32
+    and float64 points."""
+    rng = np.random.default_rng(11)
+    cloud = rng.normal(size=(150_000, 3)) * [15.0, 12.0, 2.0]
+    cloud[::7] = cloud[3]  # a tie of ~21,000 points
+    cloud[1::5] = cloud[::5]  # pairs of coincident points
+    for points in (cloud, cloud.astype(np.float32), cloud[:, [2, 0, 1]]):
+        codes = morton_rank(points)
+        assert int(codes.max()).bit_length() > 2 * SPREAD_BITS
+        order = np.argsort(codes, kind="stable")
+        for count in (1, 999, 30_000, 149_999):
+            expected = np.sort(order[(np.arange(count) * len(points)) // count])
+            np.testing.assert_array_equal(spread_subset(points, count), expected)
