@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 from mapsqueeze.errors import MapsqueezeError
-from mapsqueeze.geometry.threads import one_blas_thread, set_threads
+from mapsqueeze.geometry.threads import help_shared, one_blas_thread, set_threads, wake_helpers
 
 TileFunction = Callable[[Any, Any], Any]
 
@@ -68,7 +69,10 @@ class ThreadExecutor:
     the context shared instead of copied, the results handed over without pickling. numpy's matrix products stay
     on one BLAS thread while the pool is open (`one_blas_thread`, entered by the thread that opens it: threadpoolctl
     lets one thread at a time set OpenBLAS's process-wide count), so each job's bytes are the serial run's. This
-    process keeps freed memory for the next tile from then on, as pool workers do (`_keep_freed_memory`)."""
+    process keeps freed memory for the next tile from then on, as pool workers do (`_keep_freed_memory`). Once
+    every job is handed to the pool, a thread that finds no job left helps the running ones with the independent
+    parts they offer (`geometry.threads.run_shared`: the decoder's groups of embedding points, the patch planes'
+    blocks), so the last tiles do not run on one core while the others idle."""
 
     def __init__(self, workers: int):
         from concurrent.futures import ThreadPoolExecutor
@@ -80,8 +84,26 @@ class ThreadExecutor:
         self._pool = ThreadPoolExecutor(workers, thread_name_prefix="mapsqueeze-decode")
 
     def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
-        return _ordered(lambda item: self._pool.submit(function, context, item), items,
-                        IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
+        lock, unfinished = threading.Lock(), [0]  # jobs submitted and not done (run, failed or cancelled)
+
+        def done(_future) -> None:
+            with lock:
+                unfinished[0] -= 1
+            wake_helpers()
+
+        def submit(item: Any) -> Any:
+            with lock:
+                unfinished[0] += 1
+            future = self._pool.submit(function, context, item)
+            future.add_done_callback(done)
+            return future
+
+        def then_help(items: Iterable) -> Iterator:
+            yield from items
+            for _ in range(self.workers - 1):  # queued after the last job: they start as threads run out of jobs
+                self._pool.submit(help_shared, lambda: unfinished[0] == 0)
+
+        return _ordered(submit, then_help(items), IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
 
     def close(self, abort: bool = False) -> None:
         """Wait for the running jobs (a thread cannot be stopped) after dropping the queued ones."""

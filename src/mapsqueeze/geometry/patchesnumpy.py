@@ -7,10 +7,12 @@ the compiled kernel."""
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import numpy as np
 
 from mapsqueeze.geometry.rows import select_rows
+from mapsqueeze.geometry.threads import run_shared
 from mapsqueeze.geometry.surface import GOLDEN_ANGLE, GOLDEN_FRACTION
 
 _BLOCK_POINTS = 1 << 15
@@ -57,18 +59,22 @@ def patch_planes_chosen(points: np.ndarray, patch: int, options, choices: np.nda
         raise ValueError(f"{len(choices)} choices for {n_patches} patches")
     grouped = points.reshape(n_patches, patch, 3)
     pieces: list = [None] * n_patches
+
+    def rework(chosen: np.ndarray, strength: float, copies: int, radius_m: float) -> None:
+        out, inside = _block(grouped[chosen].reshape(-1, 3), 0, patch, float(strength), copies, float(radius_m),
+                             low, box, per_patch=True)
+        kept = select_rows(out, inside)
+        ends = np.cumsum(inside.reshape(len(chosen), -1).sum(axis=1)).tolist()
+        for index, start, end in zip(chosen.tolist(), [0] + ends[:-1], ends):
+            pieces[index] = kept[start:end]
+
     step = max(1, _BLOCK_POINTS // patch)
+    tasks = []
     for option in np.unique(choices).tolist():
-        strength, copies, radius_m = options[option]
         members = np.flatnonzero(choices == option)
-        for first in range(0, len(members), step):
-            chosen = members[first:first + step]
-            out, inside = _block(grouped[chosen].reshape(-1, 3), 0, patch, float(strength), copies, float(radius_m),
-                                 low, box, per_patch=True)
-            kept = select_rows(out, inside)
-            ends = np.cumsum(inside.reshape(len(chosen), -1).sum(axis=1)).tolist()
-            for index, start, end in zip(chosen.tolist(), [0] + ends[:-1], ends):
-                pieces[index] = kept[start:end]
+        tasks += [partial(rework, members[first:first + step], *options[option])
+                  for first in range(0, len(members), step)]
+    run_shared(tasks)  # blocks of distinct patches: idle decoding threads may take some
     return np.concatenate(pieces) if pieces else np.zeros((0, 3), dtype=np.float32)
 
 

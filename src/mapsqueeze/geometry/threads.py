@@ -7,7 +7,8 @@ import contextlib
 import os
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -19,6 +20,8 @@ _kernel_threads = 0  # the caller's torch thread count while `one_torch_thread` 
 _pin_lock = threading.Lock()
 _pin_depth = 0
 _blas = None  # threadpoolctl's controller of the loaded BLAS libraries (made on first use)
+_shared = threading.Condition()  # guards _offers and every _Offer's counts; notified as tasks end or jobs finish
+_offers: deque = deque()  # the `run_shared` calls with tasks left to take, oldest first
 
 
 def default_threads() -> int:
@@ -81,6 +84,81 @@ def one_torch_thread() -> Iterator[None]:
                 if _kernel_threads > 1:
                     torch.set_num_threads(_kernel_threads)
                 _kernel_threads = 0
+
+
+class _Offer:
+    """The tasks of one `run_shared` call: the next one to take, how many are running, the first error."""
+
+    def __init__(self, tasks: Sequence[Callable[[], object]]):
+        self.tasks, self.taken, self.running, self.error = tasks, 0, 0, None
+
+
+def run_shared(tasks: Sequence[Callable[[], object]]) -> None:
+    """Run independent tasks (each writes outputs of its own, so the results do not depend on the thread that runs
+    it) in this thread, in order, while threads waiting in `help_shared` may take the next ones; returns once all
+    have run, raising the first error (the tasks not yet taken are then dropped). A decoding thread pool's idle
+    threads help the tiles still being decoded (`codec.executor.ThreadExecutor`), so both cores work until the
+    last tile is done."""
+    if len(tasks) < 2:
+        for task in tasks:
+            task()
+        return
+    offer = _Offer(tasks)
+    with _shared:
+        _offers.append(offer)
+        _shared.notify_all()
+    while _run_next(offer):
+        pass
+    with _shared:
+        while offer.running:
+            _shared.wait()
+    if offer.error is not None:
+        raise offer.error
+
+
+def help_shared(finished: Callable[[], bool]) -> None:
+    """Run tasks that `run_shared` calls of other threads offer, oldest call first, until finished() holds while
+    none is offered (checked again on every `wake_helpers`)."""
+    while True:
+        with _shared:
+            while not _offers:
+                if finished():
+                    return
+                _shared.wait()
+            offer = _offers[0]
+        _run_next(offer)
+
+
+def wake_helpers() -> None:
+    """Let the threads in `help_shared` check their `finished` again."""
+    with _shared:
+        _shared.notify_all()
+
+
+def _run_next(offer: _Offer) -> bool:
+    """Take the offer's next task and run it in this thread; False when none is left."""
+    with _shared:
+        if offer.taken >= len(offer.tasks):
+            return False
+        task = offer.tasks[offer.taken]
+        offer.taken += 1
+        offer.running += 1
+        if offer.taken == len(offer.tasks):
+            _offers.remove(offer)
+    try:
+        task()
+    except BaseException as exc:  # noqa: BLE001 - handed to the caller of run_shared
+        with _shared:
+            if offer.error is None:
+                offer.error = exc
+            if offer.taken < len(offer.tasks):
+                offer.taken = len(offer.tasks)
+                _offers.remove(offer)
+    finally:
+        with _shared:
+            offer.running -= 1
+            _shared.notify_all()
+    return True
 
 
 def _reset_pool_after_fork() -> None:

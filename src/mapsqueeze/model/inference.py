@@ -11,11 +11,12 @@ their outputs for every shipped model (tests/test_inference.py). Matrix products
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from mapsqueeze.errors import ModelError
-from mapsqueeze.geometry.threads import one_blas_thread
+from mapsqueeze.geometry.threads import one_blas_thread, run_shared
 from mapsqueeze.model.config import ModelConfig
 from mapsqueeze.model.kernels import kernel_sigma, query_chunk
 
@@ -219,10 +220,10 @@ class InferenceNetwork:
         group = max(1, DECODE_GROUP_ROWS // int(np.prod(factors[:-1], dtype=np.int64)))
         children = int(np.prod(factors, dtype=np.int64))
         out = np.empty((len(points) * children, 3), dtype=np.float32)
+        tasks = [partial(self._decode_group, points[start:start + group], features[start:start + group],
+                         out[start * children:(start + group) * children]) for start in range(0, len(points), group)]
         with one_blas_thread():
-            for start in range(0, len(points), group):
-                stop = min(len(points), start + group)
-                self._decode_group(points[start:stop], features[start:stop], out[start * children:stop * children])
+            run_shared(tasks)  # the groups are independent: idle decoding threads may take some
         return out
 
     def _decode_group(self, points: np.ndarray, features: np.ndarray, out: np.ndarray) -> None:
