@@ -249,3 +249,95 @@ def _fail_on_four(context, item):
     if item == 4:
         raise MapsqueezeError("tile 4 is broken")
     return item
+
+
+def test_a_thread_out_of_jobs_helps_the_running_ones_with_their_shared_tasks():
+    """Once every job is handed out, an idle thread of the pool takes tasks that a running job offers
+    (`run_shared`); the tasks write their own outputs, so the job's result is the serial one."""
+    import threading
+    import time
+
+    from mapsqueeze.geometry.threads import run_shared
+
+    def job(context, item):
+        out, ran_in = np.zeros(40), [None] * 40
+
+        def task(i):
+            time.sleep(0.005)
+            out[i], ran_in[i] = item * 100 + i, threading.get_ident()
+
+        run_shared([lambda i=i: task(i) for i in range(40)])
+        return out, set(ran_in)
+
+    pool = executor_module.ThreadExecutor(2)
+    try:
+        results = list(pool.map(job, None, [7]))
+    finally:
+        pool.close()
+    out, threads = results[0]
+    assert np.array_equal(out, 700 + np.arange(40)) and len(threads) == 2
+
+
+def test_a_shared_task_that_fails_fails_its_job_once_the_others_are_done():
+    import time
+
+    from mapsqueeze.geometry.threads import run_shared
+
+    finished = []
+
+    def task(i):
+        time.sleep(0.002)
+        if i == 5:
+            raise MapsqueezeError("task 5 is broken")
+        finished.append(i)
+
+    def job(context, item):
+        run_shared([lambda i=i: task(i) for i in range(30)])
+
+    pool = executor_module.ThreadExecutor(2)
+    try:
+        with pytest.raises(MapsqueezeError, match="task 5"):
+            list(pool.map(job, None, [0]))
+        assert 5 not in finished and len(finished) < 29  # the tasks not yet taken were dropped
+        assert list(pool.map(lambda context, item: item, None, range(5))) == list(range(5))  # the pool still works
+    finally:
+        pool.close()
+
+
+def test_overlapping_thread_pools_keep_blas_at_one_thread_until_the_last_closes():
+    """Two decoding pools opened and closed by two threads, overlapping: the second pool's jobs still run on one
+    BLAS thread after the first pool closed, and the caller's count comes back once both are closed (threadpoolctl
+    alone ignores the limits of all but one thread)."""
+    import threading
+
+    blas = ThreadpoolController().select(user_api="blas")
+    numpy_blas_threads = lambda: {library["num_threads"] for library in blas.info()  # noqa: E731
+                                  if "numpy" in library["filepath"]}
+    first_open, second_open, first_closed = threading.Event(), threading.Event(), threading.Event()
+    seen = []
+
+    def first():
+        pool = executor_module.ThreadExecutor(2)
+        first_open.set()
+        second_open.wait(10)
+        pool.close()
+        first_closed.set()
+
+    def second():
+        first_open.wait(10)
+        pool = executor_module.ThreadExecutor(2)
+        second_open.set()
+        first_closed.wait(10)
+        try:
+            seen.extend(pool.map(lambda context, item: numpy_blas_threads(), None, range(4)))
+        finally:
+            pool.close()
+
+    with blas.limit(limits=2):
+        threads = [threading.Thread(target=first), threading.Thread(target=second)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(30)
+        assert seen == [{1}] * 4
+        assert numpy_blas_threads() == {2}

@@ -67,8 +67,8 @@ class ThreadExecutor:
     """A pool of `workers` threads of this process, for jobs that spend their time in numpy and BLAS calls, which
     release the GIL (decoding: the numpy decoder and post-filters): no process to start, no module imported again,
     the context shared instead of copied, the results handed over without pickling. numpy's matrix products stay
-    on one BLAS thread while the pool is open (`one_blas_thread`, entered by the thread that opens it: threadpoolctl
-    lets one thread at a time set OpenBLAS's process-wide count), so each job's bytes are the serial run's. This
+    on one BLAS thread while the pool is open (`one_blas_thread`, held from the opening to the closing of the pool,
+    however many other pools of the process open and close meanwhile), so each job's bytes are the serial run's. This
     process keeps freed memory for the next tile from then on, as pool workers do (`_keep_freed_memory`). Once
     every job is handed to the pool, a thread that finds no job left helps the running ones with the independent
     parts they offer (`geometry.threads.run_shared`: the decoder's groups of embedding points, the patch planes'

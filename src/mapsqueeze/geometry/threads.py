@@ -19,7 +19,10 @@ _threads = 0  # set_threads's count (0: the default, `default_threads`)
 _kernel_threads = 0  # the caller's torch thread count while `one_torch_thread` holds torch at one (0: none held)
 _pin_lock = threading.Lock()
 _pin_depth = 0
-_blas = None  # threadpoolctl's controller of the loaded BLAS libraries (made on first use)
+_blas = None  # the loaded BLAS libraries, process-wide and per-thread (`_blas_libraries`, found on first use)
+_blas_lock = threading.Lock()
+_blas_depth = 0  # one_blas_thread blocks open in all threads of this process
+_blas_saved: list = []  # (setter, count before) of the process-wide BLAS libraries while _blas_depth > 0
 _shared = threading.Condition()  # guards _offers and every _Offer's counts; notified as tasks end or jobs finish
 _offers: deque = deque()  # the `run_shared` calls with tasks left to take, oldest first
 
@@ -51,14 +54,66 @@ def set_threads(count: int) -> None:
 def one_blas_thread() -> Iterator[None]:
     """numpy's matrix products run on one BLAS thread inside the block, so their sums are added in one order
     whatever the thread count (OpenBLAS and MKL split and block a product differently for 1 and 2 threads). The
-    compiled kernels of `run_over_ranges`, whose rows are independent, keep `threads()`."""
+    compiled kernels of `run_over_ranges`, whose rows are independent, keep `threads()`.
+
+    Blocks nest and overlap across threads: a BLAS library with one thread count for the whole process (OpenBLAS
+    on pthreads, BLIS) is set to one thread when the first block of any thread opens and set back when the last
+    one closes, by its own function (threadpoolctl lets one thread at a time change OpenBLAS's count and ignores the
+    others' calls, so two decoding runs in two threads of a process would give one of them back its full count
+    while it still decodes); a library with a count per thread (OpenMP, MKL) is limited in this thread for the
+    block."""
+    global _blas_depth, _blas_saved
+    process_wide, per_thread = _blas_libraries()
+    with _blas_lock:
+        if _blas_depth == 0:
+            _blas_saved = [(setter, getter()) for getter, setter in process_wide]
+            for setter, _ in _blas_saved:
+                setter(1)
+        _blas_depth += 1
+    saved = [(library, library.get_num_threads()) for library in per_thread]
+    for library, _ in saved:
+        library.set_num_threads(1)
+    try:
+        yield
+    finally:
+        for library, count in reversed(saved):
+            library.set_num_threads(count)
+        with _blas_lock:
+            _blas_depth -= 1
+            if _blas_depth == 0:
+                for setter, count in _blas_saved:
+                    setter(count)
+                _blas_saved = []
+
+
+def _blas_libraries() -> tuple[list[tuple[Callable[[], int], Callable[[int], object]]], list]:
+    """(getter, setter) of each loaded BLAS library whose thread count is the process's, and threadpoolctl's
+    controllers of those whose count is per thread (found once per process)."""
     global _blas
     if _blas is None:
         from threadpoolctl import ThreadpoolController
 
-        _blas = ThreadpoolController()
-    with _blas.limit(limits=1, user_api="blas"):
-        yield
+        process_wide, per_thread = [], []
+        for library in ThreadpoolController().select(user_api="blas").lib_controllers:
+            if getattr(library, "threading_layer", None) == "openmp" or library.internal_api == "mkl":
+                per_thread.append(library)
+            else:
+                process_wide.append((library.get_num_threads, _process_wide_setter(library)))
+        _blas = process_wide, per_thread
+    return _blas
+
+
+def _process_wide_setter(library) -> Callable[[int], object]:
+    """OpenBLAS's own openblas_set_num_threads (under the symbol prefixes and suffixes of its builds, as
+    threadpoolctl looks them up), which takes effect whichever thread calls it; another library's threadpoolctl
+    setter."""
+    if library.internal_api == "openblas":
+        for prefix in ("", "scipy_"):
+            for suffix in ("", "64_", "_64"):
+                function = getattr(library.dynlib, f"{prefix}openblas_set_num_threads{suffix}", None)
+                if function is not None:
+                    return function
+    return library.set_num_threads
 
 
 @contextlib.contextmanager
