@@ -19,11 +19,13 @@ _BLOCK_POINTS = 1 << 15
 """Points reworked at once (whole patches; bounds the float64 temporaries to a few MB)."""
 
 
-def checked_points(points: np.ndarray, patch: int, upper: np.ndarray | None
+def checked_points(points: np.ndarray, patch: int, upper: np.ndarray | None, float32_kept: bool = False
                    ) -> tuple[np.ndarray, np.float32, np.ndarray]:
     """(contiguous float64 points, lower and upper float32 box bounds) of `patch_planes`'s arguments; ValueError
-    unless the points are whole patches."""
-    points = np.ascontiguousarray(points, dtype=np.float64)
+    unless the points are whole patches. `float32_kept`: float32 points stay float32 (`_block` widens each block's
+    points as it transposes them, the same values)."""
+    points = np.ascontiguousarray(points, dtype=np.float32 if float32_kept and points.dtype == np.float32
+                                  else np.float64)
     if patch < 1 or len(points) % patch:
         raise ValueError(f"{len(points)} points are not whole patches of {patch}")
     low = np.float32(-np.inf if upper is None else 0.0)
@@ -40,7 +42,7 @@ def patch_planes(points: np.ndarray, patch: int, strength: float, copies: int, r
     the disk of `radius_m` metres around it in that plane (the pattern of `surface.disk_samples`, sample
     s = i copies + j). Returns float32 points in that order, only those inside the box [0, upper] (float32
     comparison, like `codec.tilepoints.keep_inside`) when `upper` (metres) is given."""
-    points, low, box = checked_points(points, patch, upper)
+    points, low, box = checked_points(np.asarray(points), patch, upper, float32_kept=True)
     step = max(1, _BLOCK_POINTS // patch) * patch
     blocks = [select_rows(*_block(points[start:start + step], start, patch, float(strength), copies, float(radius_m),
                                   low, box)) for start in range(0, len(points), step)]
@@ -52,7 +54,7 @@ def patch_planes_chosen(points: np.ndarray, patch: int, options, choices: np.nda
     """`patch_planes` of each patch alone (its disk samples numbered from its first point) with its own
     (strength, copies, radius_m) = options[choices[i]], the patches' points concatenated in patch order: the
     bytes of calling `patches.patch_planes` patch by patch, with the patches of one option reworked at once."""
-    points, low, box = checked_points(points, patch, upper)
+    points, low, box = checked_points(np.asarray(points), patch, upper, float32_kept=True)
     n_patches = len(points) // patch
     choices = np.asarray(choices)
     if len(choices) != n_patches:
@@ -84,8 +86,9 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
     per_patch: numbered from each patch's first point instead), before the crop: the (K (1 + copies), 3) float32
     points and the mask of those inside the box."""
     n_patches = len(points) // patch
-    x, y, z = np.ascontiguousarray(points.T).reshape(3, n_patches, patch)
-    by_rank = np.ascontiguousarray(points.reshape(n_patches, patch, 3).transpose(1, 2, 0))  # (patch, 3, n_patches)
+    x, y, z = np.ascontiguousarray(points.T, dtype=np.float64).reshape(3, n_patches, patch)
+    by_rank = np.ascontiguousarray(points.reshape(n_patches, patch, 3).transpose(1, 2, 0),
+                                   dtype=np.float64)  # (patch, 3, n_patches)
     mean = _running_sum(by_rank) / patch
     offsets = by_rank - mean
     products = np.empty((patch, 6, n_patches))
@@ -102,10 +105,15 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
     length = np.sqrt(fx * fx + fy * fy + fz * fz)
     fx, fy, fz = fx / length, fy / length, fz / length
     sx, sy, sz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
-    dx, dy, dz = x - mean[0][:, None], y - mean[1][:, None], z - mean[2][:, None]
-    offset = dx * nx[:, None]
-    offset += dy * ny[:, None]
-    offset += dz * nz[:, None]
+    # offset = (x - mean) n_x + (y - mean) n_y + (z - mean) n_z, times the strength: each difference and product
+    # rounded as before, added in that order
+    offset = np.subtract(x, mean[0][:, None])
+    offset *= nx[:, None]
+    term = np.empty_like(offset)
+    for column, centre, normal in ((y, mean[1], ny), (z, mean[2], nz)):
+        np.subtract(column, centre[:, None], out=term)
+        term *= normal[:, None]
+        offset += term
     offset *= strength
     out = np.empty((len(points), 1 + copies, 3), dtype=np.float32)
     if copies:
@@ -116,19 +124,25 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
         angle = sample * GOLDEN_ANGLE
         u = (radius * np.cos(angle)).reshape(-1, patch, copies)  # (1, patch, copies) per patch: the same samples
         v = (radius * np.sin(angle)).reshape(-1, patch, copies)
+        along, across = np.empty((n_patches, patch, copies)), np.empty((n_patches, patch, copies))
+    moved = term
     for axis, (column, normal, first_tangent, second_tangent) in enumerate(((x, nx, fx, sx), (y, ny, fy, sy),
                                                                             (z, nz, fz, sz))):
-        moved = column - offset * normal[:, None]
+        np.multiply(offset, normal[:, None], out=moved)
+        np.subtract(column, moved, out=moved)
         out[:, 0, axis] = moved.ravel()
         if copies:
-            along = u * first_tangent[:, None, None]
+            np.multiply(u, first_tangent[:, None, None], out=along)
             along += moved[..., None]
-            along += v * second_tangent[:, None, None]
+            np.multiply(v, second_tangent[:, None, None], out=across)
+            along += across
             out[:, 1:, axis] = along.reshape(-1, copies)
     out = out.reshape(-1, 3)
-    inside = (out[:, 0] >= low) & (out[:, 0] <= box[0])
+    inside = out[:, 0] >= low  # in place, as `tilepoints.keep_inside`
+    inside &= out[:, 0] <= box[0]
     for axis in (1, 2):
-        inside &= (out[:, axis] >= low) & (out[:, axis] <= box[axis])
+        inside &= out[:, axis] >= low
+        inside &= out[:, axis] <= box[axis]
     return out, inside
 
 
