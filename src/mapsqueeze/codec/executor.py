@@ -101,7 +101,7 @@ class ThreadExecutor:
         def then_help(items: Iterable) -> Iterator:
             yield from items
             for _ in range(self.workers - 1):  # queued after the last job: they start as threads run out of jobs
-                self._pool.submit(help_shared, lambda: unfinished[0] == 0)
+                self._pool.submit(_help, lambda: unfinished[0] == 0)
 
         return _ordered(submit, then_help(items), IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
 
@@ -111,6 +111,13 @@ class ThreadExecutor:
             self._pool.shutdown(wait=True, cancel_futures=True)
         finally:
             self._blas.__exit__(None, None, None)
+
+
+def _help(finished: Callable[[], bool]) -> None:
+    """A pool thread out of jobs: `help_shared` on one BLAS thread, as each decode holds it in its own thread (a
+    BLAS library with a thread count per thread, OpenMP or MKL, would otherwise run the tasks it takes on all)."""
+    with one_blas_thread():
+        help_shared(finished)
 
 
 class ProcessExecutor:
