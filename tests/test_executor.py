@@ -1,4 +1,4 @@
-"""Tile jobs in worker processes and on a Dask cluster give the bytes and points of the serial run."""
+"""Tile jobs in pool threads and on a Dask cluster give the bytes and points of the serial run."""
 
 import subprocess
 import sys
@@ -41,13 +41,13 @@ def serial(map_points, model):
     return data, mapsqueeze.decompress(data, model=model, workers=1)
 
 
-def test_worker_processes_give_the_serial_bytes_and_points(model, map_points, serial):
+def test_pool_threads_give_the_serial_bytes_and_points(model, map_points, serial):
     data = mapsqueeze.compress(map_points, model=model, workers=3)
     assert data == serial[0]
     assert np.array_equal(mapsqueeze.decompress(data, model=model, workers=3), serial[1])
 
 
-def test_attributes_coded_by_worker_processes_give_the_serial_bytes_and_values(map_points, model):
+def test_attributes_coded_by_pool_threads_give_the_serial_bytes_and_values(map_points, model):
     from mapsqueeze.api import decompress_cloud
 
     attributes = {"intensity": np.random.default_rng(1).uniform(0, 1, len(map_points)).astype(np.float32)}
@@ -67,32 +67,30 @@ def test_file_to_file_with_workers_gives_the_serial_files(map_points, model_dir,
     assert np.array_equal(read_points(tmp_path / "two.npy"), serial[1])
 
 
-def test_worker_pools_import_no_torch(map_points, model_dir, serial, tmp_path):
-    """A compress and a decompress with 2 workers: neither the calling process nor the modules the pool's server
-    imports for the workers (`WORKER_MODULES`) load torch, and the bytes are the serial run's."""
+def test_compress_and_decompress_with_workers_import_no_torch_and_start_no_process(map_points, model_dir, serial,
+                                                                                  tmp_path):
+    """A compress and a decompress with 2 workers: the process loads no torch and starts no child process (the
+    tiles run in its threads), and the bytes are the serial run's."""
     source, msq, decoded = tmp_path / "map.ply", tmp_path / "map.msq", tmp_path / "decoded.npy"
     write_points(source, map_points)
-    probe = (f"import sys, mapsqueeze; from mapsqueeze.codec import compress, decompress; "
+    probe = (f"import sys, multiprocessing, psutil, mapsqueeze; "
              f"mapsqueeze.compress_file({str(source)!r}, {str(msq)!r}, model={str(model_dir)!r}, workers=2); "
              f"mapsqueeze.decompress_file({str(msq)!r}, {str(decoded)!r}, model={str(model_dir)!r}, workers=2); "
-             f"coordinator = 'torch' in sys.modules; "
-             f"[__import__(name) for name in compress.WORKER_MODULES + decompress.WORKER_MODULES]; "
-             f"print(coordinator, 'torch' in sys.modules)")
+             f"print('torch' in sys.modules, 'multiprocessing.forkserver' in sys.modules, "
+             f"len(psutil.Process().children(recursive=True)))")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
-    assert done.stdout.split() == ["False", "False"]
+    assert done.stdout.split() == ["False", "False", "0"]
     assert msq.read_bytes() == serial[0]
     assert np.array_equal(read_points(decoded), serial[1])
 
 
 def test_decoding_imports_no_numba(model_dir, serial, tmp_path):
-    """Decoding a file (the coordinator's and a decoding worker's modules, `decompress.WORKER_MODULES`) loads
-    neither numba nor torch: the decoder runs on numpy alone."""
+    """Decoding a file loads neither numba nor torch nor scipy: the decoder runs on numpy alone."""
     msq = tmp_path / "map.msq"
     msq.write_bytes(serial[0])
-    probe = (f"import sys, mapsqueeze; from mapsqueeze.codec import decompress; "
-             f"[__import__(name) for name in decompress.WORKER_MODULES]; "
+    probe = (f"import sys, mapsqueeze; "
              f"mapsqueeze.decompress_file({str(msq)!r}, {str(tmp_path / 'decoded.npy')!r}, "
-             f"model={str(model_dir)!r}, workers=1); "
+             f"model={str(model_dir)!r}, workers=2); "
              f"print(sorted({{'numba', 'torch', 'scipy'}} & set(sys.modules)))")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "[]"
@@ -150,17 +148,7 @@ def _page_faults_of_a_second_round(context, sizes_mb):
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
-def test_pool_workers_reuse_freed_memory_for_the_next_tile():
-    pool = executor_module.ProcessExecutor(2, None)
-    try:
-        faults = list(pool.map(_page_faults_of_a_second_round, None, [[2, 4, 8, 16]] * 2))
-    finally:
-        pool.close()
-    assert max(faults) < 500  # 0 measured; ~2,000 with glibc's defaults (arrays mapped afresh)
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
-def test_decoding_threads_reuse_freed_memory_for_the_next_tile():
+def test_pool_threads_reuse_freed_memory_for_the_next_tile():
     pool = executor_module.ThreadExecutor(2)
     try:
         faults = list(pool.map(_page_faults_of_a_second_round, None, [[2, 4, 8, 16]] * 2))
@@ -181,34 +169,19 @@ def test_cli_refuses_zero_workers(tmp_path):
     assert done.returncode == 2 and done.stderr.startswith("error:") and "Traceback" not in done.stderr
 
 
-def test_the_pool_server_starts_before_the_map_is_tiled_and_only_for_a_pool(map_points, model, serial, monkeypatch):
-    from mapsqueeze.codec import compress as compress_module
-
-    events = []
-    monkeypatch.setattr(executor_module, "_forkserver", lambda workers, preload: events.append(("server", workers)))
-    for workers, scheduler, jobs in ((1, None, 5), (2, None, 1), (2, "tcp://nowhere:1", 5)):
-        executor_module.start_pool_server(workers, scheduler, jobs)
-    assert events == []  # no pool will be opened: nothing started
-    executor_module.start_pool_server(3, None, 2)
-    assert events == [("server", 2)]
-
-    events.clear()
-    tile_map = compress_module.tile_map
-    monkeypatch.setattr(compress_module, "tile_map",
-                        lambda *args, **kwargs: events.append(("tiling", None)) or tile_map(*args, **kwargs))
-    monkeypatch.setattr(compress_module, "start_pool_server",
-                        lambda workers, scheduler, jobs, preload: events.append(("server", workers)))
-    assert mapsqueeze.compress(map_points, model=model, workers=1) == serial[0]
-    assert events[:2] == [("server", 1), ("tiling", None)]
-
-
-def test_decompress_decodes_in_threads_of_this_process(model, serial, monkeypatch):
-    """Several workers decode in a pool of threads (`ThreadExecutor`): no pool server, no child process, the points
-    of the serial run, numpy's BLAS at one thread in every job and back at the caller's count afterwards."""
+@pytest.mark.parametrize("direction", ["compress", "decompress"])
+def test_tiles_run_in_threads_on_their_share_of_the_cores(map_points, model, serial, monkeypatch, direction):
+    """Several workers run the tile jobs in a pool of threads (`ThreadExecutor`): no child process, the serial
+    run's bytes or points; in every job numpy's BLAS at one thread, the compiled kernels and the job thread's
+    OpenMP searches at the workers' share of the cores (here 4 cores for 2 workers: 2 each, so two jobs run
+    `run_over_ranges` at once); the caller's settings back afterwards."""
     import multiprocessing
 
+    from mapsqueeze.geometry import threads as threads_module
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(executor_module, "default_workers", lambda: 4)
     opened, seen = [], []
-    monkeypatch.setattr(executor_module, "_forkserver", lambda workers, preload: pytest.fail("a pool server"))
     real = executor_module.ThreadExecutor
 
     class Spy(real):
@@ -218,20 +191,31 @@ def test_decompress_decodes_in_threads_of_this_process(model, serial, monkeypatc
 
         def map(self, function, context, items):
             def job(context, item):
-                seen.append(numpy_blas_threads())
+                seen.append((library_threads("blas", "numpy"), threads_module.threads(),
+                             library_threads("openmp", "pykdtree")))
                 return function(context, item)
             return super().map(job, context, items)
 
     monkeypatch.setattr(executor_module, "ThreadExecutor", Spy)
+    import pykdtree.kdtree  # noqa: F401  (its OpenMP library, loaded for the controller to see)
+
+    def library_threads(api, package):
+        """The thread counts, as the calling thread sees them, of the loaded `api` libraries `package` ships."""
+        return {library["num_threads"] for library in ThreadpoolController().select(user_api=api).info()
+                if package in library["filepath"]}
+
     blas = ThreadpoolController().select(user_api="blas")
-    numpy_blas_threads = lambda: {library["num_threads"] for library in blas.info()  # noqa: E731
-                                  if "numpy" in library["filepath"]}
+    kernels = threads_module.threads()
     with blas.limit(limits=2):
-        assert numpy_blas_threads() == {2}
-        assert np.array_equal(mapsqueeze.decompress(serial[0], model=model, workers=3), serial[1])
-        assert numpy_blas_threads() == {2}
+        if direction == "compress":
+            assert mapsqueeze.compress(map_points, model=model, workers=2) == serial[0]
+        else:
+            assert np.array_equal(mapsqueeze.decompress(serial[0], model=model, workers=2), serial[1])
+        assert library_threads("blas", "numpy") == {2}
+    assert threads_module.threads() == kernels
     n_tiles = mapsqueeze.info(serial[0]).n_tiles
-    assert opened == [min(3, n_tiles)] and seen == [{1}] * n_tiles
+    jobs = 2 * n_tiles if direction == "compress" else n_tiles  # compress: embed, then candidates
+    assert opened == [2] * (jobs // n_tiles) and seen == [({1}, 2, {2})] * jobs
     assert multiprocessing.active_children() == []
 
 

@@ -306,8 +306,8 @@ def test_the_second_extra_copy_must_gain_its_iou_margin(monkeypatch, ious, chose
 
 
 def test_decoding_a_patch_plane_file_loads_no_numba(tmp_path, e0_tile):
-    """The decoder runs the patch planes in numpy (`geometry.patchesnumpy`): neither a decompress nor the modules
-    its workers preload import numba (~120 MB a process)."""
+    """The decoder runs the patch planes in numpy (`geometry.patchesnumpy`): neither a decompress nor its modules
+    import numba (~120 MB a process)."""
     points, model = e0_tile
     path = tmp_path / "patched.msq"
     path.write_bytes(mapsqueeze.compress(points, model=model, workers=1))
@@ -315,9 +315,7 @@ def test_decoding_a_patch_plane_file_loads_no_numba(tmp_path, e0_tile):
     with stream:
         assert any(PostFilter.parse(entry.post_filter).patch_levels for entry in reader.entries)
     script = ("import sys, mapsqueeze\n"
-              "from mapsqueeze.codec.decompress import WORKER_MODULES\n"
-              "import importlib\n"
-              "[importlib.import_module(name) for name in WORKER_MODULES]\n"
+              "import mapsqueeze.codec.decompress, mapsqueeze.model.compression\n"
               "assert 'numba' not in sys.modules\n"
               f"cloud = mapsqueeze.decompress(open({str(path)!r}, 'rb').read(), model='e0', workers=1)\n"
               "print(len(cloud), 'numba' in sys.modules)\n")

@@ -113,7 +113,7 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
     Points at exactly (0, 0, 0), which sensors write for "no return", are left out (with their attributes) unless
     keep_zero_points. attributes: name -> (N,) values, coded per tile as chosen by attribute_options (which, voxel
     edge, step); metadata: JSON-serialisable file metadata (e.g. `PointCloud.metadata` of a LAS file) stored in the
-    file. workers: processes encoding tiles in parallel (None: one per core); dask_scheduler: run the tiles on a
+    file. workers: threads encoding tiles in parallel (None: one per core); dask_scheduler: run the tiles on a
     Dask cluster at this address instead ("local": a LocalCluster of `workers` processes). The bytes are the same.
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)

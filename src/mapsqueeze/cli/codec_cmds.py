@@ -43,8 +43,7 @@ def _tile_progress(description: str) -> Iterator:
 
 def _workers_option() -> typer.models.OptionInfo:
     return typer.Option(None, "--workers", min=1, metavar="N",
-                        help="processes (compress) or threads (decompress) coding tiles in parallel (default: one per "
-                             "core); the bytes are the same")
+                        help="threads coding tiles in parallel (default: one per core); the bytes are the same")
 
 
 def _dask_option() -> typer.models.OptionInfo:

@@ -25,7 +25,7 @@ from mapsqueeze.codec.container import (
 )
 from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
 from mapsqueeze.codec.entropy import ByteWriter
-from mapsqueeze.codec.executor import ProgressCallback, open_executor, start_pool_server
+from mapsqueeze.codec.executor import ProgressCallback, open_executor
 from mapsqueeze.codec.header import DefaultCount, Header
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
@@ -38,12 +38,6 @@ from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map
 from mapsqueeze.geometry.validation import validate_points
 from mapsqueeze.io import PointCloud, validate_attributes, work_dir
-
-WORKER_MODULES = ("mapsqueeze.codec.compress", "mapsqueeze.codec.tilejobs", "mapsqueeze.model.compression",
-                  "mapsqueeze.geometry.grid", "mapsqueeze.baselines.octree", "mapsqueeze.geometry.cells",
-                  "mapsqueeze.codec.compressworker")
-"""What compressing workers import (`codec.executor.ProcessExecutor`'s preload): the numpy network, the octree
-coder, numba and its kernels, with numba's compiler started (`compressworker`)."""
 
 MAX_REFINE_STEPS = 10_000
 """Encode-time refinement steps accepted at most per tile (`CompressionModel.refine`; a guard against typos)."""
@@ -99,7 +93,7 @@ def compress_map(
     position_step_m / feature_step_std set the q quantiser (defaults DEFAULT_POSITION_STEP_RS x r_s, at most
     DEFAULT_POSITION_STEP_MAX_M, and
     DEFAULT_FEATURE_STEP_STD). refine_steps > 0 refines each network tile's embedding at encode time
-    (`CompressionModel.refine`: slower encoding, lower D_e, same format). Tiles are encoded by `workers` processes
+    (`CompressionModel.refine`: slower encoding, lower D_e, same format). Tiles are encoded by `workers` threads
     (None: one per core) or on the Dask cluster at `dask_scheduler` ("local" starts one; `codec.executor`); only
     their compact embeddings and payloads are kept until the file is assembled (q fits its histograms over all tiles
     before coding them). Deterministic: the same points, model and settings give the same bytes, whatever runs them.
@@ -112,7 +106,6 @@ def compress_map(
     attributes = validate_attributes(attributes, len(points), name="map")
     schema = _attribute_schema(_ranges(attributes), metadata, attribute_options)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
-    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)  # it imports while we tile
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     coded = [spec.name for spec in schema.specs] if schema else []
 
@@ -165,8 +158,6 @@ def compress_chunks(
     schema = _attribute_schema(ranges, metadata, attribute_options)
     coded = [(spec.name, spec.dtype) for spec in schema.specs] if schema else []
     origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
-    # the server imports during pass 2 (the grid's cell count bounds the occupied tiles')
-    start_pool_server(workers, dask_scheduler, int(np.prod(shape)), WORKER_MODULES)
     with work_dir("mapsqueeze-tiles-", spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
         for chunk in map(_as_cloud, chunks()):
@@ -331,7 +322,7 @@ def _network_bytes(tile: EncodedTile) -> int | None:
 def _embed_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,
                  origin: np.ndarray, model, refine_steps: int, workers: int | None,
                  dask_scheduler: str | None) -> list[EncodedTile]:
-    """Every tile's embedding with one model, by `workers` processes or a Dask cluster (`codec.executor`)."""
+    """Every tile's embedding with one model, by `workers` threads or a Dask cluster (`codec.executor`)."""
     job = TileJob(model, origin, np.asarray(model.config.tile_size, dtype=np.float64), refine_steps)
     return _run(embed_job, job, tile_points, n_tiles, workers, dask_scheduler, lambda done, total: None)
 
@@ -340,7 +331,7 @@ def _run(function, job: TileJob, items: Iterable, n_jobs: int, workers: int | No
          progress: ProgressCallback) -> list:
     """function(job, item) of every item, in order, on the executor `workers` / `dask_scheduler` open."""
     results = []
-    executor = open_executor(workers, dask_scheduler, job, n_jobs, WORKER_MODULES)
+    executor = open_executor(workers, dask_scheduler, n_jobs)
     try:
         for done, result in enumerate(executor.map(function, job, items), start=1):
             results.append(result)

@@ -32,11 +32,6 @@ from mapsqueeze.errors import ContainerError, DecodeLimitError, InvalidPointClou
 from mapsqueeze.geometry.resample import resample_to_count
 from mapsqueeze.io import PointCloud
 
-WORKER_MODULES = ("mapsqueeze.codec.decompress", "mapsqueeze.model.compression")
-"""What processes that decode tiles import (the preload of `codec.executor.ProcessExecutor` pools decoding for the
-encoder's attribute coder, `codec.tileattributes`; decompress decodes in threads): the numpy decoder and
-post-filters, no numba."""
-
 MIN_DENSITY_EXTENT_M = 1.0
 """--density counts points per cubic metre of each tile's point bounding box, each side at least this long."""
 
@@ -296,7 +291,7 @@ def iter_tile_points(
                     for position, count in jobs)
         support = attributes and bool(reader.attribute_entries) and reader.version >= ATTRIBUTES_ON_DECODED_GEOMETRY
         context = (header, model, max_tile_points, support)
-        executor = open_executor(workers, dask_scheduler, context, len(jobs), threads=True)
+        executor = open_executor(workers, dask_scheduler, len(jobs))
         try:
             decoded = executor.map(_decode_job, context, payloads)
             for done, (position, count) in enumerate(zip(selected, counts), start=1):

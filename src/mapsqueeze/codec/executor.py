@@ -1,24 +1,22 @@
-"""Where per-tile jobs run: in this process, in threads of it (decoding), in local worker processes (encoding), or
-on a Dask cluster, behind one interface.
+"""Where per-tile jobs run: in this process, in a pool of its threads, or on a Dask cluster, behind one interface.
 
 Every executor maps a module-level `function(context, item)` over items and yields the results in input order,
 with at most a few items per worker submitted ahead of the one being yielded (memory: one tile per worker plus the
-results waiting for their turn). `context` (e.g. the model) is sent to each worker once. Each worker runs its
-compiled kernels on its share of the cores; results do not depend on where a job ran, so every executor gives the
-same bytes.
+results waiting for their turn). `context` (e.g. the model) is shared by the threads, sent once to each Dask
+worker. Each worker runs its compiled kernels on its share of the cores; results do not depend on where a job ran,
+so every executor gives the same bytes.
 """
 
 from __future__ import annotations
 
 import os
-import sys
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from mapsqueeze.errors import MapsqueezeError
-from mapsqueeze.geometry.threads import help_shared, one_blas_thread, set_threads, wake_helpers
+from mapsqueeze.geometry.threads import help_shared, kernel_threads, one_blas_thread, set_threads, wake_helpers
 
 TileFunction = Callable[[Any, Any], Any]
 
@@ -29,11 +27,12 @@ IN_FLIGHT_PER_WORKER = 2
 """Jobs submitted per worker ahead of the oldest unfinished one (keeps workers busy while results are collected)."""
 
 WORKER_MMAP_THRESHOLD_BYTES = 32 << 20
-"""Worker processes allocate blocks up to this size from malloc's heap instead of mapping each one afresh
+"""A process running a pool allocates blocks up to this size from malloc's heap instead of mapping each one afresh
 (glibc's largest; `_keep_freed_memory`)."""
 
 WORKER_TRIM_THRESHOLD_BYTES = 64 << 20
-"""Freed heap a worker process keeps for its next tile instead of returning it to the system (a tile's arrays)."""
+"""Freed heap a process running a pool keeps for the next tile instead of returning it to the system (a tile's
+arrays)."""
 
 DASK_RETRIES = 3
 """A Dask job whose worker dies is run again on another worker this many times before the whole run fails."""
@@ -64,24 +63,29 @@ class SerialExecutor:
 
 
 class ThreadExecutor:
-    """A pool of `workers` threads of this process, for jobs that spend their time in numpy and BLAS calls, which
-    release the GIL (decoding: the numpy decoder and post-filters): no process to start, no module imported again,
-    the context shared instead of copied, the results handed over without pickling. numpy's matrix products stay
-    on one BLAS thread while the pool is open (`one_blas_thread`, held from the opening to the closing of the pool,
-    however many other pools of the process open and close meanwhile), so each job's bytes are the serial run's. This
-    process keeps freed memory for the next tile from then on, as pool workers do (`_keep_freed_memory`). Once
-    every job is handed to the pool, a thread that finds no job left helps the running ones with the independent
-    parts they offer (`geometry.threads.run_shared`: the decoder's groups of embedding points, the patch planes'
-    blocks), so the last tiles do not run on one core while the others idle."""
+    """A pool of `workers` threads of this process. The tile jobs spend their time in numpy's array operations and
+    matrix products, the compiled kernels (`geometry.jit.compiled`: nogil) and the k-d tree searches, which all
+    release the GIL, so the threads run in parallel with no process to start, no module imported again, the context
+    shared instead of copied and the results handed over without pickling. While the pool is open: numpy's matrix
+    products stay on one BLAS thread (`one_blas_thread`, held from the opening to the closing of the pool, however
+    many other pools of the process open and close meanwhile), so each job's bytes are the serial run's; the
+    compiled kernels (`kernel_threads`) and each pool thread's OpenMP k-d tree searches (`_pool_thread_start`) run on
+    the workers' share of the cores. This process keeps freed memory for the next tile from then on
+    (`_keep_freed_memory`). Once every job is handed to the pool, a thread that finds no job left helps the running
+    ones with the independent parts they offer (`geometry.threads.run_shared`: the decoder's groups of embedding
+    points, the patch planes' blocks), so the last tiles do not run on one core while the others idle."""
 
     def __init__(self, workers: int):
         from concurrent.futures import ThreadPoolExecutor
 
         self.workers = workers
         _keep_freed_memory()
-        self._blas = one_blas_thread()
+        share = _threads_per_worker(workers)
+        self._blas, self._kernels = one_blas_thread(), kernel_threads(share)
         self._blas.__enter__()
-        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="mapsqueeze-decode")
+        self._kernels.__enter__()
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="mapsqueeze-tile", initializer=_pool_thread_start,
+                                        initargs=(share,))
 
     def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
         lock, unfinished = threading.Lock(), [0]  # jobs submitted and not done (run, failed or cancelled)
@@ -110,6 +114,7 @@ class ThreadExecutor:
         try:
             self._pool.shutdown(wait=True, cancel_futures=True)
         finally:
+            self._kernels.__exit__(None, None, None)
             self._blas.__exit__(None, None, None)
 
 
@@ -118,32 +123,6 @@ def _help(finished: Callable[[], bool]) -> None:
     BLAS library with a thread count per thread, OpenMP or MKL, would otherwise run the tasks it takes on all)."""
     with one_blas_thread():
         help_shared(finished)
-
-
-class ProcessExecutor:
-    """A pool of `workers` local processes (forkserver: safe whatever threads this process runs), each started
-    with the context and its threads limited to its share of the cores. `preload`: the modules the jobs use,
-    imported once by the server the workers are forked from (set by the first pool of this process, or by
-    `start_pool_server`, which starts the server), not by every worker."""
-
-    def __init__(self, workers: int, context: Any, preload: Sequence[str] = ()):
-        from concurrent.futures import ProcessPoolExecutor
-
-        self.workers = workers
-        start = _forkserver(workers, preload)
-        self._pool = ProcessPoolExecutor(workers, mp_context=start, initializer=_install_context,
-                                         initargs=(context, _threads_per_worker(workers), _ParentStderr()))
-
-    def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
-        return _ordered(lambda item: self._pool.submit(_run_installed, function, item), items,
-                        IN_FLIGHT_PER_WORKER * self.workers, lambda future: future.result())
-
-    def close(self, abort: bool = False) -> None:
-        """Stop the workers; `abort` (an error or a signal ended the run) terminates them first."""
-        if abort:
-            for process in list(self._pool._processes.values()):  # CPython's table of live workers
-                process.terminate()
-        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 class DaskExecutor:
@@ -180,43 +159,18 @@ class DaskExecutor:
             self._cluster.close()
 
 
-Executor = SerialExecutor | ThreadExecutor | ProcessExecutor | DaskExecutor
+Executor = SerialExecutor | ThreadExecutor | DaskExecutor
 
 
-def open_executor(workers: int | None, dask_scheduler: str | None, context: Any, n_jobs: int,
-                  preload: Sequence[str] = (), threads: bool = False) -> Executor:
+def open_executor(workers: int | None, dask_scheduler: str | None, n_jobs: int) -> Executor:
     """The executor for a run of n_jobs tile jobs: Dask when a scheduler address is given, for several workers and
-    jobs a pool of threads (`threads`: jobs that release the GIL) or else of processes (`preload`: see
-    ProcessExecutor), else this process. workers None: one per core."""
+    jobs a pool of threads, else this process. workers None: one per core."""
     workers = default_workers() if workers is None else check_workers(workers)
     if dask_scheduler:
         return DaskExecutor(dask_scheduler, workers)
     if workers > 1 and n_jobs > 1:
-        return ThreadExecutor(min(workers, n_jobs)) if threads else ProcessExecutor(min(workers, n_jobs), context,
-                                                                                     preload)
+        return ThreadExecutor(min(workers, n_jobs))
     return SerialExecutor()
-
-
-def start_pool_server(workers: int | None, dask_scheduler: str | None, n_jobs: int,
-                      preload: Sequence[str] = ()) -> None:
-    """Start now the server that `open_executor`'s process pool for these arguments will fork its workers from
-    (nothing when it will open none), so that the server imports `preload` (~0.6 CPU-s) while this process still
-    reads the input, instead of the pool's first job waiting for it. n_jobs may be an upper bound (a server
-    started for a run that then needs no pool idles until this process exits)."""
-    workers = default_workers() if workers is None else check_workers(workers)
-    if not dask_scheduler and workers > 1 and n_jobs > 1:
-        _forkserver(min(workers, n_jobs), preload)
-
-
-def _forkserver(workers: int, preload: Sequence[str]) -> Any:
-    """The forkserver context, its server running with `preload` (`_start_quiet_forkserver`; the first call of
-    this process starts it, later ones find it running)."""
-    import multiprocessing
-
-    start = multiprocessing.get_context("forkserver")
-    start.set_forkserver_preload(list(preload))
-    _start_quiet_forkserver(_threads_per_worker(workers))
-    return start
 
 
 def _ordered(submit: Callable[[Any], Any], items: Iterable, in_flight: int, result: Callable[[Any], Any]) -> Iterator:
@@ -238,62 +192,24 @@ def _threads_per_worker(workers: int) -> int:
     return max(1, default_workers() // workers)
 
 
-_context: Any = None
+def _pool_thread_start(count: int) -> None:
+    """A pool thread's first act: its OpenMP k-d tree searches (pykdtree's) run on `count` threads, unless the
+    user set OMP_NUM_THREADS (OpenMP's thread count is each thread's own: without this a pool thread would start
+    one OpenMP thread per core for every search). pykdtree is loaded first, so that its OpenMP library is there to
+    be set."""
+    if "OMP_NUM_THREADS" in os.environ:
+        return
+    import pykdtree.kdtree  # noqa: F401
+    from threadpoolctl import ThreadpoolController
 
-
-def _start_quiet_forkserver(threads: int) -> None:
-    """Start the forkserver (once per process) with its stderr on the null device: a worker that is still being
-    spawned when a signal or an error ends this process fails to load its spawn data and would print a traceback.
-    Each worker gets this process's stderr back in `_install_context`, once it has started. Unless the user set
-    OMP_NUM_THREADS, the server starts with it at `threads`, so that the OpenMP library it preloads (pykdtree's
-    k-d tree searches) runs one thread per worker's share of the cores instead of spinning on all of them."""
-    import multiprocessing.forkserver
-
-    sys.stderr.flush()
-    saved = os.dup(2)
-    null = os.open(os.devnull, os.O_WRONLY)
-    user_threads = os.environ.get("OMP_NUM_THREADS")
-    try:
-        os.dup2(null, 2)
-        if user_threads is None:
-            os.environ["OMP_NUM_THREADS"] = str(threads)
-        multiprocessing.forkserver.ensure_running()
-    finally:
-        if user_threads is None:
-            os.environ.pop("OMP_NUM_THREADS", None)
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(null)
-
-
-class _ParentStderr:
-    """This process's stderr, duplicated into a worker when the worker is spawned."""
-
-    def __reduce__(self):
-        from multiprocessing.reduction import DupFd
-
-        return _received_stderr, (DupFd(2),)
-
-
-def _received_stderr(handle: Any) -> Any:
-    return handle
-
-
-def _install_context(context: Any, threads: int, stderr: Any) -> None:
-    """Worker-process initialiser: write to the parent's stderr, keep the context for every job, limit the
-    threads (`set_threads`) and keep freed memory for the next job (`_keep_freed_memory`)."""
-    global _context
-    os.dup2(stderr.detach(), 2)
-    set_threads(threads)
-    _keep_freed_memory()
-    _context = context
+    ThreadpoolController().select(user_api="openmp").limit(limits=count)
 
 
 def _keep_freed_memory() -> None:
     """Let glibc's malloc reuse a tile's freed arrays for the next tile (WORKER_MMAP_THRESHOLD_BYTES,
-    WORKER_TRIM_THRESHOLD_BYTES): with its defaults, a worker, whose heap holds little else, maps and zero-fills
-    every tile's arrays afresh (~20,000 page faults a tile, ~2 of the pool's 6 CPU-s decoding 25 tiles,
-    BENCHMARKS.md "Throughput"). Nothing changes where the C library has no mallopt."""
+    WORKER_TRIM_THRESHOLD_BYTES): with its defaults, a pool maps and zero-fills every tile's arrays afresh (~20,000
+    page faults a tile, ~2 of 6 CPU-s decoding 25 tiles in worker processes, BENCHMARKS.md "Throughput"). Nothing
+    changes where the C library has no mallopt."""
     import ctypes
 
     try:
@@ -307,10 +223,6 @@ def _keep_freed_memory() -> None:
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 """mallopt's parameter numbers (glibc's malloc.h)."""
-
-
-def _run_installed(function: TileFunction, item: Any) -> Any:
-    return function(_context, item)
 
 
 def _run_with_context(function: TileFunction, context: Any, item: Any, threads: int | None) -> Any:

@@ -9,7 +9,7 @@ import numpy as np
 
 from mapsqueeze.codec.attributes import AttributeSchema, encode_tile_attributes
 from mapsqueeze.codec.container import open_container
-from mapsqueeze.codec.decompress import WORKER_MODULES, attribute_support, tile_frame
+from mapsqueeze.codec.decompress import attribute_support, tile_frame
 from mapsqueeze.codec.executor import open_executor
 from mapsqueeze.codec.header import Header
 from mapsqueeze.geometry.tiling import to_local
@@ -40,7 +40,7 @@ class AttributeCoder:
                       points, values)
                      for position, (_, points, values) in enumerate(self.tile_source()) if position in missing)
             context = (reader.header, self.model, self.schema)
-            executor = open_executor(self.workers, self.dask_scheduler, context, len(wanted), WORKER_MODULES)
+            executor = open_executor(self.workers, self.dask_scheduler, len(wanted))
             try:
                 for key, coded in zip(wanted, executor.map(_attribute_job, context, items)):
                     self._coded[key] = coded

@@ -1,4 +1,4 @@
-"""The per-tile jobs of compress (`codec.compress`), run by its worker processes or a Dask cluster
+"""The per-tile jobs of compress (`codec.compress`), run by its pool threads or a Dask cluster
 (`codec.executor`): `embed_job` encodes a tile, `candidates_job` (once the map's latent codec is fitted over every
 tile's embedding) gives its candidate codings with their D_e, the network's decode post-filter and patch-choice
 search, on one decode of the tile's coded embedding, as the decoder will see it."""

@@ -13,8 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-_pool: ThreadPoolExecutor | None = None
-_pool_workers = 0
+_pools = threading.local()  # each calling thread's pool of kernel threads (`run_over_ranges`)
 _threads = 0  # set_threads's count (0: the default, `default_threads`)
 _kernel_threads = 0  # the caller's torch thread count while `one_torch_thread` holds torch at one (0: none held)
 _pin_lock = threading.Lock()
@@ -48,6 +47,20 @@ def set_threads(count: int) -> None:
     torch = sys.modules.get("torch")
     if torch is not None and torch.get_num_threads() != _threads:
         torch.set_num_threads(_threads)
+
+
+@contextlib.contextmanager
+def kernel_threads(count: int) -> Iterator[None]:
+    """The compiled kernels (and torch, if imported) run on `count` threads inside the block (`set_threads`); the
+    caller's setting is restored on exit."""
+    global _threads
+    saved = _threads
+    set_threads(count)
+    try:
+        yield
+    finally:
+        set_threads(saved or default_threads())
+        _threads = saved
 
 
 @contextlib.contextmanager
@@ -217,8 +230,8 @@ def _run_next(offer: _Offer) -> bool:
 
 
 def _reset_pool_after_fork() -> None:
-    global _pool, _pool_workers
-    _pool, _pool_workers = None, 0  # a forked child has none of the parent's worker threads
+    global _pools
+    _pools = threading.local()  # a forked child has none of the parent's worker threads
 
 
 os.register_at_fork(after_in_child=_reset_pool_after_fork)
@@ -228,16 +241,18 @@ def run_over_ranges(kernel: Callable[[int, int], object], n_rows: int, min_rows_
     """Calls kernel(first, stop) on contiguous ranges covering range(n_rows), at most one per thread (`threads()`,
     or the caller's torch thread count inside `one_torch_thread`) and each of at least min_rows_per_thread rows, in
     parallel (the calling thread takes the first range); returns when all are done. The kernel must write disjoint
-    outputs per range, so results do not depend on the thread count. One pool of worker threads serves every call
-    (starting threads per call cost ~1 ms each)."""
-    global _pool, _pool_workers
+    outputs per range, so results do not depend on the thread count. One pool of worker threads per calling thread
+    serves its calls (starting threads per call cost ~1 ms each; the threads of a tile pool, `codec.executor`, each
+    have their own share)."""
     n_ranges = max(1, min(_kernel_threads or threads(), n_rows // max(1, min_rows_per_thread)))
     bounds = np.linspace(0, n_rows, n_ranges + 1).astype(np.int64)
-    if n_ranges - 1 > _pool_workers:  # more threads than before: a larger pool replaces the old one
-        if _pool is not None:
-            _pool.shutdown(wait=False)
-        _pool, _pool_workers = ThreadPoolExecutor(n_ranges - 1, thread_name_prefix="mapsqueeze-kernel"), n_ranges - 1
-    others = [_pool.submit(kernel, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:])] if n_ranges > 1 else []
+    pool, size = getattr(_pools, "pool", None), getattr(_pools, "size", 0)
+    if n_ranges - 1 > size:  # more threads than before: a larger pool replaces the old one
+        if pool is not None:
+            pool.shutdown(wait=False)
+        pool = _pools.pool = ThreadPoolExecutor(n_ranges - 1, thread_name_prefix="mapsqueeze-kernel")
+        _pools.size = n_ranges - 1
+    others = [pool.submit(kernel, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:])] if n_ranges > 1 else []
     kernel(int(bounds[0]), int(bounds[1]))
     for future in others:
         future.result()

@@ -25,7 +25,7 @@ class CompressionModel:
 
     On the CPU, encode and decode run `InferenceNetwork` (numpy, no torch). `refine`, and every pass on another
     device (e.g. "cuda"), run the torch network built from the same tensors (`network`, made on first use).
-    Pickles without the torch network, so worker processes that only encode and decode never import torch.
+    Pickles without the torch network, so Dask workers that only encode and decode never import torch.
     """
 
     def __init__(self, config: ModelConfig, tensors: dict[str, np.ndarray], model_id: str, weights_sha256: str,
