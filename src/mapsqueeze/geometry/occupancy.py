@@ -58,16 +58,26 @@ def _mark_voxels(points, frame, voxel, low, shape, bit, grid):
 
 
 def patch_option_ious(original: np.ndarray, uncropped: np.ndarray, patch: int, options, upper: np.ndarray,
-                      start: np.ndarray, frame_m: np.ndarray, voxel_m: tuple[float, float, float], sweeps: int
+                      start: np.ndarray, frame_m: np.ndarray, voxel_m: tuple[float, float, float], sweeps: int,
+                      copy_weight: float = 0.0, bit_weight: float = 0.0, rate_sweeps: int = 0
                       ) -> tuple[np.ndarray, float, float] | None:
     """(choice per patch, IoU of `start`, IoU of the choices) of a greedy search for the option of each patch that
-    maximises the occupancy-grid IoU (as `metrics.iou`) of the union of the patches' points with `original`.
+    maximises the occupancy-grid IoU (as `metrics.iou`) of the union of the patches' points with `original`, or,
+    with weights, that IoU with two terms for the rate and D_e that the IoU does not see:
+
+    - copy_weight: each extra point per point of an option (options[k][1]) counts as copy_weight more shared voxels,
+      times the fraction of the option's distinct voxels of the patch that `original` occupies: extra points on the
+      original's surfaces lower its points' distance to the decode (D_e) within voxels the IoU already counts;
+    - bit_weight (IoU per bit), after the `sweeps` sweeps, `rate_sweeps` more that subtract bit_weight x the bits of
+      the patch's option under the choices of the other patches (-log2 of its count + 1/2 over their number + 1/2
+      per option, as the histogram coder will spend them).
 
     original: (N, 3) world metres; uncropped: a decoded cloud (tile-local, relative to the world point frame_m) of
     patches of `patch` points, each reworked under each of `options` and cropped to the box [0, upper] (metres) as
     `patches.patch_options` does; start: (n,) the first choice of each patch. Each sweep visits the patches in order
-    and gives each the option (ties: its current one, then the lowest) that maximises the IoU with every other
-    patch as chosen; it stops after `sweeps` sweeps or one that changes nothing. None when the voxel box of the
+    and gives each the option (ties: its current one, then the lowest) that maximises the value with every other
+    patch as chosen; each phase (the sweeps without, then those with the bits) stops after its count of sweeps or
+    one that changes nothing. None when the voxel box of the
     original and the reworked points holds more than _MAX_OCCUPANCY_VOXELS voxels. The grid spans the original and
     the box [0, upper], unless that holds too many voxels; the reworked points are reduced to each patch's distinct
     voxels as they are made (`patches.patch_option_cells`), never stored."""
@@ -85,7 +95,9 @@ def patch_option_ious(original: np.ndarray, uncropped: np.ndarray, patch: int, o
     _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
     cells, offsets = patch_option_cells(uncropped, patch, options, upper, frame_m, voxel, low, shape)
     choice = np.array(start, dtype=np.int64)
-    before, after = _greedy_choices(grid, cells, offsets, len(options), len(choice), choice, sweeps)
+    bonus = copy_weight * np.array([option[1] for option in options], dtype=np.float64)
+    before, after = _greedy_choices(grid, cells, offsets, len(options), len(choice), choice, sweeps, bonus,
+                                    bit_weight, rate_sweeps)
     return choice, before, after
 
 
@@ -96,11 +108,12 @@ def _voxel_box(corners: list[np.ndarray], voxel: np.ndarray) -> tuple[np.ndarray
 
 
 @compiled
-def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, sweeps):
+def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, sweeps, bonus, bit_weight, rate_sweeps):
     """Greedy search of `patch_option_ious` on cell lists: patch i's distinct cells under option k are
-    cells[offsets[k n + i]:offsets[k n + i + 1]]; `choice` updated in place; (IoU before, IoU after)."""
+    cells[offsets[k n + i]:offsets[k n + i + 1]]; bonus[k]: copy_weight x option k's extra points per point;
+    `choice` updated in place; (IoU before, IoU after)."""
     occupied = np.zeros(original.shape[0], dtype=np.int32)  # chosen patches per cell
-    stamp = np.full(original.shape[0], -1, dtype=np.int32)  # fewer than sweeps n_patches n_options < 2^31 tags
+    stamp = np.full(original.shape[0], -1, dtype=np.int32)  # fewer than 2^31 tags: sweeps n_patches n_options
     n_original = 0
     for cell in range(original.shape[0]):
         n_original += original[cell]
@@ -116,47 +129,69 @@ def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, swee
             else:
                 false += 1
     before = shared / max(1, n_original + false)
+    counts = np.zeros(n_options, dtype=np.int64)  # patches per option
+    for i in range(n_patches):
+        counts[choice[i]] += 1
     tag = 0
-    for _ in range(sweeps):
-        changed = False
-        for i in range(n_patches):
-            k = choice[i] * n_patches + i
-            for j in range(offsets[k], offsets[k + 1]):
-                cell = cells[j]
-                occupied[cell] -= 1
-                if occupied[cell] == 0:
-                    if original[cell]:
-                        shared -= 1
-                    else:
-                        false -= 1
-            best, best_value = choice[i], -1.0
-            for option in range(n_options):
-                k = option * n_patches + i
-                gained = added = 0
-                for j in range(offsets[k], offsets[k + 1]):
-                    cell = cells[j]
-                    if occupied[cell] == 0 and stamp[cell] != tag:
-                        stamp[cell] = tag
-                        if original[cell]:
-                            gained += 1
-                        else:
-                            added += 1
-                tag += 1
-                value = (shared + gained) / max(1, n_original + false + added)
-                if value > best_value or (value == best_value and option == choice[i]):
-                    best, best_value = option, value
-            if best != choice[i]:
-                changed = True
-                choice[i] = best
-            k = best * n_patches + i
-            for j in range(offsets[k], offsets[k + 1]):
-                cell = cells[j]
-                if occupied[cell] == 0:
-                    if original[cell]:
-                        shared += 1
-                    else:
-                        false += 1
-                occupied[cell] += 1
-        if not changed:
-            break
+    for phase in range(2):
+        rate = bit_weight if phase else 0.0
+        for _ in range(rate_sweeps if phase else sweeps):
+            changed, tag, shared, false = _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus,
+                                                        rate, counts, occupied, stamp, tag, n_original, shared, false)
+            if not changed:
+                break
     return before, shared / max(1, n_original + false)
+
+
+@compiled
+def _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus, rate, counts, occupied, stamp, tag,
+                  n_original, shared, false):
+    """One sweep of `_greedy_choices` (rate: IoU per bit of the choices, 0: none); (changed, tag, shared, false)."""
+    changed = False
+    for i in range(n_patches):
+        counts[choice[i]] -= 1
+        k = choice[i] * n_patches + i
+        for j in range(offsets[k], offsets[k + 1]):
+            cell = cells[j]
+            occupied[cell] -= 1
+            if occupied[cell] == 0:
+                if original[cell]:
+                    shared -= 1
+                else:
+                    false -= 1
+        best, best_value = choice[i], -np.inf
+        for option in range(n_options):
+            k = option * n_patches + i
+            gained = added = on_original = 0
+            weighted = bonus[option] > 0.0
+            for j in range(offsets[k], offsets[k + 1]):
+                cell = cells[j]
+                if weighted and original[cell]:
+                    on_original += 1
+                if occupied[cell] == 0 and stamp[cell] != tag:
+                    stamp[cell] = tag
+                    if original[cell]:
+                        gained += 1
+                    else:
+                        added += 1
+            tag += 1
+            credit = bonus[option] * on_original / max(1, offsets[k + 1] - offsets[k])
+            value = (shared + gained + credit) / max(1, n_original + false + added)
+            if rate > 0.0:
+                value += rate * np.log2((counts[option] + 0.5) / (n_patches - 1 + 0.5 * n_options))
+            if value > best_value or (value == best_value and option == choice[i]):
+                best, best_value = option, value
+        if best != choice[i]:
+            changed = True
+            choice[i] = best
+        counts[best] += 1
+        k = best * n_patches + i
+        for j in range(offsets[k], offsets[k + 1]):
+            cell = cells[j]
+            if occupied[cell] == 0:
+                if original[cell]:
+                    shared += 1
+                else:
+                    false += 1
+            occupied[cell] += 1
+    return changed, tag, shared, false
