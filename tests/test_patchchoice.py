@@ -10,6 +10,8 @@ from mapsqueeze.codec.container import TileRecord, open_container, serialise_con
 from mapsqueeze.codec.postfilter import (
     IOU_PER_LOG_RATE,
     OFF,
+    PATCH_CHOICE_COPY_WEIGHTS,
+    PATCH_CHOICE_RATE_SWEEPS,
     PATCH,
     PATCH_CANDIDATES,
     PATCH_CHOICES,
@@ -124,6 +126,48 @@ def test_the_search_grid_spans_the_tile_box_unless_too_large(monkeypatch):
     assert all(np.array_equal(a, b) for a, b in zip(search(EXTENT), found))
     monkeypatch.setattr(occupancy, "_MAX_OCCUPANCY_VOXELS", 20_000)
     assert search(EXTENT) is None
+
+
+def test_the_copy_weight_puts_extra_points_on_the_original_and_the_bits_weight_shortens_the_stream():
+    """The copy weight trades IoU for extra points where the original is (the spread ground patches, odd), more than
+    on the exactly decoded vegetation; charging the bits gives a shorter choice stream; both off, or sweeps with
+    the bits at no weight, leave the IoU search as it is."""
+    original, decoded = mixed_patches()
+    start = np.zeros(len(decoded) // 256, dtype=np.int64)
+    copies = np.array([option[1] for option in PATCH_OPTIONS])
+
+    def search(*weights):
+        return patch_option_ious(original, decoded, 256, PATCH_OPTIONS, EXTENT, start, FRAME, IOU_VOXEL_M, 3,
+                                 *weights)
+
+    plain = search()
+    assert not copies[plain[0]].any() and plain[2] == pytest.approx(1.0)
+    for same in (search(0.0, 0.0, 2), search(0.0, 0.0, 0)):
+        assert np.array_equal(same[0], plain[0]) and same[1:] == plain[1:]
+    weighted = search(2.0)
+    assert copies[weighted[0][1::2]].mean() == 2 and copies[weighted[0][0::2]].mean() < 1
+    assert plain[2] - 0.05 < weighted[2] < plain[2] and weighted[1] == plain[1]
+    rated = search(0.0, 1e-4, 2)
+    assert len(encode_patch_choices(rated[0])) < len(encode_patch_choices(plain[0])) - 10
+    assert plain[2] - 0.01 < rated[2] <= plain[2]
+
+
+def test_the_search_weighs_d_e_and_bits_for_the_models_of_the_table_only():
+    original, decoded = mixed_patches()
+    start = np.zeros(len(decoded) // 256, dtype=np.int64)
+    plain = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF).choices
+    assert np.array_equal(search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, "e1", 3000).choices,
+                          plain)
+    assert set(PATCH_CHOICE_COPY_WEIGHTS) == {"e3"}
+    traded = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, "e3", 3000).choices
+    expected = patch_option_ious(original, decoded, 256, PATCH_OPTIONS, EXTENT, start, FRAME, IOU_VOXEL_M, 3,
+                                 PATCH_CHOICE_COPY_WEIGHTS["e3"], IOU_PER_LOG_RATE / (8 * 3000),
+                                 PATCH_CHOICE_RATE_SWEEPS)[0]
+    assert np.array_equal(traded, expected) and not np.array_equal(traded, plain)
+    unrated = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, "e3").choices  # no payload size
+    assert np.array_equal(unrated, patch_option_ious(original, decoded, 256, PATCH_OPTIONS, EXTENT, start, FRAME,
+                                                     IOU_VOXEL_M, 3, PATCH_CHOICE_COPY_WEIGHTS["e3"])[0])
+    assert not np.array_equal(unrated, traded)
 
 
 def test_choices_are_left_off_where_they_do_not_pay():
