@@ -102,9 +102,10 @@ voxels, times the share of the option's voxels the tile's points occupy), then P
 charge the choices' bits at IOU_PER_LOG_RATE per e-fold of the tile's payload. Measured on the real submaps and the
 30 simulated test submaps (BENCHMARKS.md, "Patch choices"): for e3, KITTI's rate point goes from D_e 0.816 x the
 classical front's at +0.008 IoU to 0.7998 x at +0.0014 (1.7 % fewer bytes), the first real rate point inside issue
-15's target; on the simulated ones the D_e ratio falls by 0.012 and the IoU difference by 0.005 on average, the
-same rate points met. The other models search for IoU alone: for them the same trade lost IoU where it won D_e
-(e0, e1) or met no more rate points (e2)."""
+15's target; on the simulated ones the D_e ratio falls by 0.012 and the IoU difference by 0.0055 on average, the
+same rate points met. The other models search for IoU alone: for them no variant measured met more rate points (the
+bits alone made KITTI e0 and e1 worse on both metrics; credits for extra points trade IoU, which most of their rate
+points lack, for D_e)."""
 PATCH_CHOICE_RATE_SWEEPS = 2
 """Sweeps charging the choices' bits after the PATCH_CHOICE_SWEEPS without, for the models of
 PATCH_CHOICE_COPY_WEIGHTS."""
