@@ -96,3 +96,19 @@ def test_two_gloo_processes_hold_identical_weights_write_once_and_resume(tmp_pat
     resumed = weights_digest(load_network(out / "last")[0])
     assert summary["steps"] == 4 and [row["epoch"] for row in rows] == ["1", "2"]
     assert summary["process_weights_sha256"] == [resumed, resumed] and resumed != saved
+
+
+@pytest.mark.slow
+def test_a_cycle_fitted_to_fewer_steps_than_the_time_holds_ends_the_run(run_cli, train_only_dataset, tmp_path,
+                                                                        monkeypatch):
+    """With --max-minutes the cycle is fitted to the speed of the first steps; when later steps run faster the
+    cycle ends before the time does, and the run stops there (it used to step the finished schedule: ValueError)."""
+    import mapsqueeze.train as train
+
+    monkeypatch.setattr(train, "steps_within", lambda minutes, elapsed_s, steps_taken, step_s: steps_taken + 2)
+    out = tmp_path / "run"
+    code, printed, err = run_cli("train", str(train_only_dataset), "-o", str(out), "--rate", "e3", "--epochs", "4",
+                                 "--batch-size", "1", "--max-minutes", "30")
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == train.STEPS_BEFORE_RETIMING + 2

@@ -335,7 +335,8 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
                 if progress is not None and process.writer:
                     progress(epoch, step, float(np.mean(losses[-cfg.batch_size:])))
                 if _all_ranks(process, bool((cfg.max_steps and step >= cfg.max_steps) or (
-                        cfg.max_minutes and time.time() - t0 > 60 * cfg.max_minutes)), dev):
+                        cfg.max_minutes and time.time() - t0 > 60 * cfg.max_minutes)
+                        or step >= scheduler.total_steps), dev):  # a retimed cycle can end before the time
                     stop = True
                     break
         _average_buffers(process, network)
