@@ -747,7 +747,7 @@ def test_own_leaf_distances_are_the_nearest_leaf_distances_wherever_known(leaf):
 def test_candidate_distortion_estimates_on_samples_and_is_exact_where_candidates_are_close():
     """D_e estimates from SAMPLE_POINTS points a side are within 2 % of the exact D_e; candidates whose estimates
     are close get exact values, the others (and those only close to candidates that do not compete) keep their
-    estimates; exact=True gives d_euclidean throughout."""
+    estimates; those that do not compete get NaN without being decoded; exact=True gives d_euclidean throughout."""
     from mapsqueeze.codec.distortion import SAMPLE_POINTS, CandidateDistortion, sample_indices
     from mapsqueeze.metrics import d_euclidean
 
@@ -765,7 +765,12 @@ def test_candidate_distortion_estimates_on_samples_and_is_exact_where_candidates
     for decoded in noisy:
         together.add(decoded)
     assert together.settle() == [exact[0], exact[1], estimates[2]]  # the first two are within CLOSE
-    assert together.settle([True, False, True]) == estimates  # the second does not compete: no close pair left
+    rivals = CandidateDistortion(tile)
+    for decoded, competing in zip(noisy, (True, False, True)):
+        rivals.add(lambda decoded=decoded: decoded, competing=competing)
+    rivals.add(lambda: pytest.fail("a candidate that does not compete is decoded"), competing=False)
+    values = rivals.settle()  # the second does not compete: NaN, and no close pair is left
+    assert values[0] == estimates[0] and values[2] == estimates[2] and np.isnan(values[1]) and np.isnan(values[3])
     exactly = CandidateDistortion(tile, exact=True)
     for decoded in noisy:
         exactly.add(decoded)

@@ -56,25 +56,32 @@ class CandidateDistortion:
         self.tree = nearest_tree(self.points, TREE_LEAF_POINTS)
         self.exact = exact
         self._sample = self.points[sample_indices(len(self.points))]
-        self._decoded: list[tuple[np.ndarray, OwnDistances | None]] = []
+        self._decoded: list[tuple[np.ndarray, OwnDistances | None] | None] = []
         self._values: list[float] = []
 
-    def add(self, decoded: np.ndarray, own: OwnDistances | None = None) -> None:
-        """A candidate's decoded (K, 3) points, tile-local like the tile's; `own` where some nearest distances are
-        known without a search."""
+    def add(self, decoded: Callable[[], np.ndarray] | np.ndarray, own: OwnDistances | None = None,
+            competing: bool = True) -> None:
+        """A candidate's decoded (K, 3) points, tile-local like the tile's (or a function giving them); `own` where
+        some nearest distances are known without a search. competing=False: the mode decision cannot pick the
+        candidate (e.g. larger than the network's payload, `modes.choose`), so its D_e decides nothing: NaN, with
+        no search and no decoded points made."""
+        if not competing:
+            self._decoded.append(None)
+            self._values.append(np.nan)
+            return
+        decoded = decoded() if callable(decoded) else decoded
         self._decoded.append((decoded, own))
         self._values.append(self._exact(decoded, own) if self.exact else self._estimate(decoded, own))
 
-    def settle(self, competing: list[bool] | None = None) -> list[float]:
-        """Each added candidate's D_e: its estimate, or the exact value where another competing candidate's estimate
-        is within CLOSE. competing: per candidate in the order added, whether the mode decision may pick it (e.g.
-        no larger than the network's payload, `modes.choose`: the others' D_e decide nothing); None: all."""
+    def settle(self) -> list[float]:
+        """Each added candidate's D_e: NaN for those added as not competing; for the others, the estimate, or the
+        exact value where another competing candidate's estimate is within CLOSE."""
         values = list(self._values)
         if not self.exact:
-            rivals = [True] * len(values) if competing is None else competing
-            for i, value in enumerate(values):
-                if rivals[i] and any(j != i and rivals[j] and abs(value - other) <= CLOSE * min(value, other)
-                                     for j, other in enumerate(self._values)):
+            for i, value in enumerate(self._values):
+                if self._decoded[i] is not None and any(
+                        j != i and self._decoded[j] is not None and abs(value - other) <= CLOSE * min(value, other)
+                        for j, other in enumerate(self._values)):
                     values[i] = self._exact(*self._decoded[i])
         return values
 

@@ -229,28 +229,33 @@ def apply_patch_filter(decoded: np.ndarray, byte: int, upsampling_factors, exten
 
 
 def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain: np.ndarray, upsampling_factors,
-                        frame_m: np.ndarray, extent_m: np.ndarray) -> tuple[int, np.ndarray]:
-    """(setting byte, the tile's decoded points under it): of OFF and PATCH_CANDIDATES, in that order, the one whose
-    output has the highest IoU with the tile's points (`metrics.iou`'s world-anchored grid), where two extra points
-    per point must also gain PATCH_EXTRA_COPY_MIN_IOU_GAIN over one; ties go to the earlier, so OFF unless a
-    setting gains.
+                        frame_m: np.ndarray, extent_m: np.ndarray) -> int:
+    """The setting byte of OFF and PATCH_CANDIDATES, in that order, whose output has the highest IoU with the
+    tile's points (`metrics.iou`'s world-anchored grid), where two extra points per point must also gain
+    PATCH_EXTRA_COPY_MIN_IOU_GAIN over one; ties go to the earlier, so OFF unless a setting gains.
 
     original_world: the tile's (N, 3) points in world metres; uncropped: the network's whole (K, 3) output (model
     with these upsampling factors) and plain: its points inside the tile's box [0, extent_m] (the paper's decode),
-    both in tile-local metres relative to the world point `frame_m`."""
-    settings = (OFF, *PATCH_CANDIDATES)
-    clouds = [plain] + [apply_patch_filter(uncropped, byte, upsampling_factors, extent_m, compiled=True)
-                        for byte in PATCH_CANDIDATES]
-    from mapsqueeze.geometry.occupancy import occupancy_ious  # numba: loaded only where a filter is chosen
+    both in tile-local metres relative to the world point `frame_m`. The candidates' outputs are marked on one
+    occupancy grid as they are made (`occupancy.patch_setting_ious`), or made whole (`apply_patch_filter`) where
+    that grid does not serve."""
+    from mapsqueeze.geometry.occupancy import occupancy_ious, patch_setting_ious  # numba: the encoder's alone
 
-    ious = occupancy_ious(original_world, clouds, frame_m, IOU_VOXEL_M) or \
-        [iou(original_world, cloud.astype(np.float64) + frame_m) for cloud in clouds]  # a box too large for a grid
+    settings = (OFF, *PATCH_CANDIDATES)
+    patch = int(np.prod(upsampling_factors[-PATCH_LEVELS:], dtype=np.int64))
+    ious = patch_setting_ious(original_world, uncropped, patch, PATCH_STRENGTH, PATCH_COPIES, PATCH_RADIUS_M,
+                              extent_m, frame_m, IOU_VOXEL_M)
+    if ious is None:
+        clouds = [plain] + [apply_patch_filter(uncropped, byte, upsampling_factors, extent_m, compiled=True)
+                            for byte in PATCH_CANDIDATES]
+        ious = occupancy_ious(original_world, clouds, frame_m, IOU_VOXEL_M) or \
+            [iou(original_world, cloud.astype(np.float64) + frame_m) for cloud in clouds]  # a box too large for a grid
     best = 0
     for candidate in range(1, len(settings)):
         margin = PATCH_EXTRA_COPY_MIN_IOU_GAIN if candidate > 1 else 0.0
         if ious[candidate] >= ious[candidate - 1] + margin and ious[candidate] > ious[best]:
             best = candidate
-    return settings[best], clouds[best]
+    return settings[best]
 
 
 def apply_patch_choices(decoded: np.ndarray, choices: np.ndarray, upsampling_factors, extent_m: np.ndarray

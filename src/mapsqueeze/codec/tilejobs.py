@@ -18,6 +18,7 @@ from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, ow
 from mapsqueeze.codec.postfilter import (
     OFF,
     PatchChoiceSearch,
+    apply_patch_filter,
     choose_patch_filter,
     choose_post_filter,
     search_patch_choices,
@@ -122,23 +123,29 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
     by -2 to +5 % on the real submaps; this spares a nearest-neighbour search over 2-3 times the points, and the
     tiles' codings are those of post-filter "off"), where the patch choices are also searched on the decode
     (`postfilter.search_patch_choices`, kept by `_assemble` where they pay). D_e values are `codec.distortion`'s:
-    estimated on samples, exact where two the mode decision may pick are close (without a target: those no larger
-    than the network's payload of `network_bytes`, `modes.choose`), exact throughout under a rate target or with
-    the neighbour-plane post-filter ("auto")."""
+    without a target, NaN for the classical candidates the mode decision cannot pick (larger than the network's
+    payload of `network_bytes`, `modes.choose`: neither decoded nor searched); estimated on samples, exact where
+    two it may pick are close; exact throughout under a rate target or with the neighbour-plane post-filter
+    ("auto")."""
     model, target, tile_size = job.model, job.target, job.tile_size
     lo, _, extent, frame, local = _tile_frame(job, index, tile_points)
     distortion = CandidateDistortion(local, exact=target.given or target.post_filter == "auto")
+
+    def competing(payload: bytes) -> bool:  # the default rule picks among the candidates no larger than the network
+        return target.given or network_bytes is None or len(payload) <= network_bytes
+
     classical = []  # (coding, payload, label) in the order their decodings were added to `distortion`
     if target.given or len(local) <= RAW_CANDIDATE_POINTS_PER_EMBEDDING * n_embedding:
         raw = encode_raw_tile(local, tile_size)
-        distortion.add(decode_raw_tile(raw, tile_size, len(local), "raw candidate"))
+        distortion.add(lambda: decode_raw_tile(raw, tile_size, len(local), "raw candidate"), competing=competing(raw))
         classical.append((TileCoding.raw, raw, "raw"))
     if embedding is None:
         return _candidates(classical, distortion.settle()), None, OFF, None
     leaves = OCTREE_LEAVES_M if target.fallback else ()
     for leaf, (payload, centres) in zip(leaves, encode_octree_tiles(local, tile_size, leaves)):
-        distortion.add(octree_points(centres, extent, None),
-                       lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent))
+        distortion.add(lambda centres=centres: octree_points(centres, extent, None),
+                       lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent),
+                       competing(payload))
         classical.append((TileCoding.octree, payload, f"octree {leaf:g} m"))
     post_filter, search = OFF, None
     if target.post_filter == "auto":
@@ -149,15 +156,15 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
         if target.post_filter == "patch":
             uncropped = model.decode(*embedding)
             decoded = keep_inside(uncropped, extent)
-            post_filter, filtered = choose_patch_filter(local + frame, uncropped, decoded,
-                                                        model.config.upsampling_factors, frame, extent)
-            if target.given:
-                decoded = filtered
-            del filtered
+            post_filter = choose_patch_filter(local + frame, uncropped, decoded, model.config.upsampling_factors,
+                                              frame, extent)
+            if target.given and post_filter != OFF:
+                decoded = apply_patch_filter(uncropped, post_filter, model.config.upsampling_factors, extent,
+                                             compiled=True)
         else:
             decoded = network_points(model, *embedding, extent, None)
         distortion.add(decoded)
-        *d_e, network_d_e = distortion.settle([len(payload) <= network_bytes for _, payload, _ in classical] + [True])
+        *d_e, network_d_e = distortion.settle()
         if target.post_filter == "patch" and not target.given:
             del distortion, decoded  # the candidates' decodes and trees: the search's arrays take their memory
             search = search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped,

@@ -8,7 +8,7 @@ import numpy as np
 
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.jit import compiled
-from mapsqueeze.geometry.patches import patch_option_cells, patch_options
+from mapsqueeze.geometry.patches import patch_option_cells, patch_options, patch_setting_voxels
 
 
 _MAX_OCCUPANCY_VOXELS = 1 << 26
@@ -33,11 +33,40 @@ def occupancy_ious(original: np.ndarray, clouds: list[np.ndarray], frame_m: np.n
     _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
     for bit, cloud in enumerate(clouds, start=1):
         _mark_voxels(np.ascontiguousarray(cloud), frame_m, voxel, low, shape, 1 << bit, grid)
+    return _grid_ious(grid, len(clouds))
+
+
+def patch_setting_ious(original: np.ndarray, uncropped: np.ndarray, patch: int, strength: float, copies,
+                       radius_m: float, upper: np.ndarray, frame_m: np.ndarray, voxel_m: tuple[float, float, float]
+                       ) -> list[float] | None:
+    """`occupancy_ious(original, clouds, frame_m, voxel_m)` of the clouds of a decoded (K, 3) float32 cloud
+    `uncropped` (tile-local, relative to the world point frame_m): its points inside the box [0, upper] (metres,
+    `tilepoints.keep_inside`), then `patches.patch_planes(uncropped, patch, strength, c, radius_m, upper)` for each
+    c of `copies` (at most 6), marked on one dense grid as they are made (`patches.patch_setting_voxels`: no cloud
+    is stored). None when the grid of the original and the box [0, upper] holds more than _MAX_OCCUPANCY_VOXELS
+    voxels, or a cloud has no point inside the box (its crop then clamps every point into it)."""
+    frame_m = np.asarray(frame_m, dtype=np.float64)
+    voxel = np.asarray(voxel_m, dtype=np.float64)
+    upper_m = np.asarray(upper).astype(np.float32).astype(np.float64)  # the float32 box of the points
+    low, shape = _voxel_box(list(bounding_box(original)) + [frame_m, upper_m + frame_m], voxel)
+    if np.prod(shape.astype(np.float64)) > _MAX_OCCUPANCY_VOXELS:
+        return None
+    grid = np.zeros(int(np.prod(shape)), dtype=np.uint8)
+    _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
+    inside = patch_setting_voxels(uncropped, patch, strength, copies, radius_m, upper, frame_m, voxel, low, shape,
+                                  grid)
+    if len(uncropped) and not inside.all():
+        return None
+    return _grid_ious(grid, len(inside))
+
+
+def _grid_ious(grid: np.ndarray, n_clouds: int) -> list[float]:
+    """The IoU of bit 0 (the original) with each bit 1 .. n_clouds of an occupancy grid."""
     counts = np.zeros(256, dtype=np.int64)
     _count_values(grid, counts)
     values = np.arange(256)
-    shared = [counts[values & values >> bit & 1 == 1].sum() for bit in range(1, len(clouds) + 1)]
-    either = [counts[(values | values >> bit) & 1 == 1].sum() for bit in range(1, len(clouds) + 1)]
+    shared = [counts[values & values >> bit & 1 == 1].sum() for bit in range(1, n_clouds + 1)]
+    either = [counts[(values | values >> bit) & 1 == 1].sum() for bit in range(1, n_clouds + 1)]
     return [float(common / max(1, union)) for common, union in zip(shared, either)]
 
 

@@ -55,6 +55,46 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     return cells[:offsets[-1]], offsets
 
 
+def patch_setting_voxels(points: np.ndarray, patch: int, strength: float, copies, radius_m: float,
+                         upper: np.ndarray, frame_m: np.ndarray, voxel_m: np.ndarray, low: np.ndarray,
+                         shape: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Marks the IoU voxels of several patch-plane settings of one decoded (K, 3) cloud in `grid` without making
+    their points: bit 1 for the cloud's own points inside the box [0, upper] (metres; `tilepoints.keep_inside`'s
+    crop), bit 2 + c for those of `patch_planes(points, patch, strength, copies[c], radius_m, upper)`. A point's
+    cell is that of its float32 value p in the flat uint8 grid of `shape` voxels from voxel `low`, the voxel of
+    floor((p + frame_m) / voxel_m) (as `occupancy._mark_voxels`); the grid must hold the box. The settings share
+    the planes and the moved points; the disk samples come from a table kept for the process (`_disk_table`).
+    Returns the points marked per bit (the cloud's, then each setting's)."""
+    points, box_low, box = checked_points(points, patch, upper)
+    copies = np.asarray(copies, dtype=np.int64)
+    disk = _disk_table(len(points) * int(copies.max(initial=0)), float(radius_m))
+    inside = np.zeros(1 + len(copies), dtype=np.int64)
+    _patch_settings_kernel(points, patch, float(strength), copies, disk, box_low, box,
+                           np.asarray(frame_m, dtype=np.float64), np.asarray(voxel_m, dtype=np.float64),
+                           np.asarray(low, dtype=np.int64), np.asarray(shape, dtype=np.int64), grid, inside)
+    return inside
+
+
+_DISK_TABLES: dict[float, np.ndarray] = {}
+"""Per disk radius, the (u, v) offsets of the disk samples 0, 1, ... computed so far (`_disk_table`)."""
+
+
+def _disk_table(count: int, radius_m: float) -> np.ndarray:
+    """(>= count, 2) float64: the in-plane offsets (u, v) of disk samples 0 .. count - 1 of `radius_m`, those
+    `_patch_planes_kernel` computes (sample s: radius radius_m sqrt(frac(s GOLDEN_FRACTION)), angle s GOLDEN_ANGLE),
+    extended as larger clouds ask for more (16 bytes a sample: ~8 MB for two extra points per point of a 250k-point
+    decode). Replaced whole when extended, so a thread holding the previous table can still read it."""
+    table = _DISK_TABLES.get(radius_m)
+    if table is None or len(table) < count:
+        known = 0 if table is None else len(table)
+        grown = np.empty((count, 2))
+        if known:
+            grown[:known] = table
+        _disk_samples(known, radius_m, GOLDEN_ANGLE, GOLDEN_FRACTION, grown)
+        _DISK_TABLES[radius_m] = table = grown
+    return table
+
+
 def _option_arrays(options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(strengths, copies, radii) of (strength, copies, radius_m) options."""
     return (np.array([option[0] for option in options], dtype=np.float64),
@@ -141,16 +181,9 @@ def _append_cells(rows, count, frame, voxel, grid_low, grid_shape, seen, entry, 
 
 
 @compiled
-def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, golden_angle, golden_fraction,
-                         out, ends, to_cells, frame, voxel, grid_low, grid_shape, seen, cells, base):
-    """`_rework`'s kernel: each patch's plane (centroid, normal, tangents) fitted once, then the patches reworked
-    option after option; ends[k n_patches + i]: the row after patch i under option k. Per patch, every patch has
-    the same disk samples: those of its first patch are kept and reused (no sine or cosine for the others).
-    to_cells (`patch_option_cells`): `out` holds one patch's points at a time, whose distinct voxel cells are
-    appended to `cells` (`_append_cells`; seen: -1 per grid cell, a work array), and ends[l] is the end of list
-    l's cells; the points of a patch under an option with base[option] >= 0 are those of option base[option] (the
-    same strength, no extra points), whose cells it copies, followed by its extra points. Returns the rows stored,
-    or the cells."""
+def _fit_planes(points, patch):
+    """(n_patches, 12) float64: each patch's plane, its centroid, unit normal (`_smallest_eigenvector`) and the
+    two tangents of `surface._tangents`."""
     n_patches = points.shape[0] // patch
     planes = np.empty((n_patches, 12))
     for index in range(n_patches):
@@ -185,6 +218,22 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
         plane = planes[index]
         plane[0], plane[1], plane[2], plane[3], plane[4], plane[5] = mx, my, mz, nx, ny, nz
         plane[6], plane[7], plane[8], plane[9], plane[10], plane[11] = fx, fy, fz, sx, sy, sz
+    return planes
+
+
+@compiled
+def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, golden_angle, golden_fraction,
+                         out, ends, to_cells, frame, voxel, grid_low, grid_shape, seen, cells, base):
+    """`_rework`'s kernel: each patch's plane (centroid, normal, tangents) fitted once, then the patches reworked
+    option after option; ends[k n_patches + i]: the row after patch i under option k. Per patch, every patch has
+    the same disk samples: those of its first patch are kept and reused (no sine or cosine for the others).
+    to_cells (`patch_option_cells`): `out` holds one patch's points at a time, whose distinct voxel cells are
+    appended to `cells` (`_append_cells`; seen: -1 per grid cell, a work array), and ends[l] is the end of list
+    l's cells; the points of a patch under an option with base[option] >= 0 are those of option base[option] (the
+    same strength, no extra points), whose cells it copies, followed by its extra points. Returns the rows stored,
+    or the cells."""
+    n_patches = points.shape[0] // patch
+    planes = _fit_planes(points, patch)
     disk = np.empty((patch * max(copies.max(), 0) if per_patch else 0, 2))  # per patch: every patch's samples
     kept = n_cells = 0
     for option in range(strengths.shape[0]):
@@ -229,3 +278,67 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
             else:
                 ends[entry] = kept
     return n_cells if to_cells else kept
+
+
+@compiled
+def _disk_samples(first, radius_m, golden_angle, golden_fraction, out):
+    """out[s] = (u, v) of disk sample s for s >= first, with `_patch_planes_kernel`'s arithmetic."""
+    for sample in range(first, out.shape[0]):
+        radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
+        angle = sample * golden_angle
+        out[sample, 0], out[sample, 1] = radius * np.cos(angle), radius * np.sin(angle)
+
+
+@compiled
+def _in_box(x, y, z, low, box):
+    """Whether the float32 point (x, y, z) lies inside [low, box] (as `_store_inside`)."""
+    return x >= low and y >= low and z >= low and x <= box[0] and y <= box[1] and z <= box[2]
+
+
+@compiled
+def _cell(x, y, z, frame, voxel, grid_low, grid_shape):
+    """The grid cell of the float32 point (x, y, z) (as `_append_cells`)."""
+    cx = np.int64(np.floor((np.float64(x) + frame[0]) / voxel[0])) - grid_low[0]
+    cy = np.int64(np.floor((np.float64(y) + frame[1]) / voxel[1])) - grid_low[1]
+    cz = np.int64(np.floor((np.float64(z) + frame[2]) / voxel[2])) - grid_low[2]
+    return (cx * grid_shape[1] + cy) * grid_shape[2] + cz
+
+
+@compiled
+def _patch_settings_kernel(points, patch, strength, copies, disk, low, box, frame, voxel, grid_low, grid_shape, grid,
+                           inside):
+    """`patch_setting_voxels`'s kernel: the points of `_patch_planes_kernel` (one option at a time, samples
+    numbered from the cloud's first point) marked in the grid as they are made."""
+    planes = _fit_planes(points, patch)
+    moved_bits = 0
+    for c in range(copies.shape[0]):
+        moved_bits |= 1 << (2 + c)
+    n_plain = n_moved = 0
+    for index in range(points.shape[0] // patch):
+        plane = planes[index]
+        mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
+        fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
+        for i in range(index * patch, (index + 1) * patch):
+            x, y, z = np.float32(points[i, 0]), np.float32(points[i, 1]), np.float32(points[i, 2])
+            if _in_box(x, y, z, low, box):
+                grid[_cell(x, y, z, frame, voxel, grid_low, grid_shape)] |= 2
+                n_plain += 1
+            offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
+            px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
+            x, y, z = np.float32(px), np.float32(py), np.float32(pz)
+            if _in_box(x, y, z, low, box):
+                grid[_cell(x, y, z, frame, voxel, grid_low, grid_shape)] |= moved_bits
+                n_moved += 1
+            for c in range(copies.shape[0]):
+                bit = 1 << (2 + c)
+                for j in range(copies[c]):
+                    sample = i * copies[c] + j
+                    u, v = disk[sample, 0], disk[sample, 1]
+                    x, y, z = (np.float32(px + u * fx + v * sx), np.float32(py + u * fy + v * sy),
+                               np.float32(pz + u * fz + v * sz))
+                    if _in_box(x, y, z, low, box):
+                        grid[_cell(x, y, z, frame, voxel, grid_low, grid_shape)] |= bit
+                        inside[1 + c] += 1
+    inside[0] += n_plain
+    for c in range(copies.shape[0]):
+        inside[1 + c] += n_moved
