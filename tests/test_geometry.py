@@ -211,3 +211,25 @@ def test_spread_subset_is_every_nth_of_the_stable_sort_of_the_codes():
         for count in (1, 999, 30_000, 149_999):
             expected = np.sort(order[(np.arange(count) * len(points)) // count])
             np.testing.assert_array_equal(spread_subset(points, count), expected)
+
+
+def test_grid_nearest_distances_are_the_k_d_tree_search_s():
+    """NearestGrid gives nearest_tree's distances bit for bit: uniform, flat and line clouds, a lattice whose queries
+    tie between points, queries outside the cloud's box, far beyond MAX_SHELLS cells (left to a tree), one point."""
+    from mapsqueeze.geometry.nearest import NearestGrid
+    from mapsqueeze.metrics import nearest_tree
+
+    rng = np.random.default_rng(8)
+    flat = np.column_stack([rng.uniform(0, 40, 20_000), rng.uniform(0, 40, 20_000), np.zeros(20_000)])
+    lattice = np.stack(np.meshgrid(np.arange(30.0), np.arange(30.0), np.arange(10.0)), -1).reshape(-1, 3) * 0.2
+    cases = [(rng.uniform(0, 40, (50_000, 3)).astype(np.float32), rng.uniform(0, 40, (3000, 3))),
+             (flat, rng.uniform(-2, 42, (3000, 3)) * [1, 1, 0.05]),
+             (flat, rng.uniform(-500, 500, (200, 3))),
+             (np.column_stack([np.linspace(0, 40, 5000), np.zeros(5000), np.zeros(5000)]), rng.normal(20, 10, (500, 3))),
+             (lattice, np.round(rng.uniform(-1, 7, (3000, 3)), 1)),
+             (np.full((4, 3), 2.5), rng.normal(0, 1, (100, 3)))]
+    for points, queries in cases:
+        expected = nearest_tree(points).query(np.ascontiguousarray(queries, dtype=np.float64), k=1)[0]
+        assert np.array_equal(NearestGrid(points).distances(queries), expected)
+    with pytest.raises(ValueError, match="at least one point"):
+        NearestGrid(np.zeros((0, 3)))

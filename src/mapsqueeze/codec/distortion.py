@@ -2,8 +2,8 @@
 computed exactly wherever two candidates' estimates are close enough for the estimate to decide between them.
 
 The estimate is eq. 9's symmetric mean over at most SAMPLE_POINTS points of the tile and SAMPLE_POINTS decoded
-points: the nearest-neighbour searches, not the k-d trees, are what D_e costs (a network tile decodes to ~250k
-points). The sample is a jittered systematic one: the points cut into SAMPLE_POINTS runs of consecutive indices, one
+points (a network tile decodes to ~250k points), their nearest distances searched on grids of cells
+(`geometry.nearest`: a k-d tree search's distances in about half its time). The sample is a jittered systematic one: the points cut into SAMPLE_POINTS runs of consecutive indices, one
 point drawn from each with a fixed seed (a plain stride aliases with the decoder's children, which come in blocks of
 the upsampling factors). Measured on the 484 candidates of the 70 tiles of the real submaps, six KITTI scans and
 two KITTI-copy maps (BENCHMARKS.md "Throughput"), 234 of them sampled: relative error at most 1.4 % (0.5 % rms) for
@@ -28,9 +28,10 @@ CLOSE = 0.05
 SAMPLE_SEED = 0
 
 TREE_LEAF_POINTS = 64
-"""Points per leaf of the estimates' k-d trees (pykdtree's default: 16): a quarter less time building a decoded
-network tile's tree (~250k points) and the tile's, about the same searching the samples; distances do not depend on
-it. (A candidate whose exact D_e is needed builds its tree again: keeping the trees for that costs ~5 MB a worker.)"""
+"""Points per leaf of the tile's k-d tree for exact D_e (pykdtree's default: 16; distances do not depend on it), built
+when the first exact value is asked for. The estimates search grids of cells instead (`geometry.nearest`: the same
+distances; building one over a decoded network tile, ~250k points, and searching the samples takes about half a
+tree's time)."""
 
 OwnDistances = Callable[[np.ndarray], np.ndarray]
 """Tile points (n, 3) -> (n,) distances to their nearest decoded point where known cheaply, NaN elsewhere (the
@@ -47,14 +48,21 @@ def sample_indices(n: int, size: int = SAMPLE_POINTS) -> np.ndarray:
     return bounds[:-1] + offsets.astype(np.int64)
 
 
+def _grid(points: np.ndarray):
+    from mapsqueeze.geometry.nearest import NearestGrid  # numba: imported here, the CLI starts without it
+
+    return NearestGrid(points)
+
+
 class CandidateDistortion:
     """The D_e (metres) of each decoded candidate of one tile against the tile's points: `add` each candidate's
     decoded points, then `settle` gives their D_e in the order added (exact throughout when `exact`)."""
 
     def __init__(self, points: np.ndarray, exact: bool = False):
         self.points = np.ascontiguousarray(points, dtype=np.float64)
-        self.tree = nearest_tree(self.points, TREE_LEAF_POINTS)
         self.exact = exact
+        self._tree = None
+        self._grid = None if exact else _grid(self.points)
         self._sample = self.points[sample_indices(len(self.points))]
         self._decoded: list[tuple[np.ndarray, OwnDistances | None] | None] = []
         self._values: list[float] = []
@@ -86,14 +94,15 @@ class CandidateDistortion:
         return values
 
     def _exact(self, decoded: np.ndarray, own: OwnDistances | None) -> float:
-        return d_euclidean(self.points, decoded, self.tree, None if own is None else own(self.points))
+        if self._tree is None:
+            self._tree = nearest_tree(self.points, TREE_LEAF_POINTS)
+        return d_euclidean(self.points, decoded, self._tree, None if own is None else own(self.points))
 
     def _estimate(self, decoded: np.ndarray, own: OwnDistances | None) -> float:
         points = self._sample
         to_decoded = np.full(len(points), np.nan) if own is None else own(points)
         unknown = np.isnan(to_decoded)
         if unknown.any():
-            to_decoded[unknown] = nearest_tree(decoded, TREE_LEAF_POINTS).query(points[unknown], k=1)[0]
-        rows = sample_indices(len(decoded))
-        to_tile = self.tree.query(np.ascontiguousarray(decoded[rows], dtype=np.float64), k=1)[0]
+            to_decoded[unknown] = _grid(decoded).distances(points[unknown])
+        to_tile = self._grid.distances(decoded[sample_indices(len(decoded))])
         return float(to_decoded.mean() / 2 + to_tile.mean() / 2)
