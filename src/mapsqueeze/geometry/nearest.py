@@ -51,9 +51,9 @@ class NearestGrid:
         _nearest_kernel(self.sorted, self.cell_start, self.low, self.edge, self.dims, self.margin, queries, out)
         far = np.isnan(out)
         if far.any():
-            from mapsqueeze.metrics import nearest_tree
+            from pykdtree.kdtree import KDTree
 
-            out[far] = nearest_tree(self.sorted.T).query(queries[far], k=1)[0]
+            out[far] = KDTree(np.ascontiguousarray(self.sorted.T)).query(queries[far], k=1)[0]
         return out
 
 
