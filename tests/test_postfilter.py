@@ -262,25 +262,21 @@ def test_decoding_a_filtered_file_does_not_depend_on_the_workers(e0_tile, filter
 @pytest.mark.parametrize("factors", [(2, 4, 4, 4), (5, 5, 5, 5)])
 def test_patch_setting_ious_are_those_of_the_settings_clouds(monkeypatch, factors):
     """One grid marked as the settings' points are made gives occupancy_ious of keep_inside's crop and of each
-    patch-plane setting's cloud (points partly outside the box, a disk table extended across calls); None where a
-    cloud has no point inside the box, and then choose_patch_filter picks from the clouds made whole."""
-    from mapsqueeze.geometry import patches
-
+    patch-plane setting's cloud (points partly outside the box); None where a cloud has no point inside the box or
+    the grid would be too large, and then choose_patch_filter picks from the clouds made whole."""
     rng = np.random.default_rng(11)
     frame = np.array([500_000.0, 4_000_000.0, 50.0])
     patch = int(np.prod(factors))
     centres = rng.uniform(-1, 13, (40, 3)) * [1, 1, 0.3]
     decoded = (np.repeat(centres, patch, axis=0) + rng.normal(0, [0.3, 0.3, 0.05], (40 * patch, 3))).astype(np.float32)
     original = rng.uniform(0, 12, (5000, 3)) * [1, 1, 0.3] + frame
-    monkeypatch.setattr(patches, "_DISK_TABLES", {})
-    for cloud in (decoded[:10 * patch], decoded):  # the second call extends the first one's disk table
+    for cloud in (decoded[:10 * patch], decoded):
         clouds = [keep_inside(cloud, EXTENT)] + [patch_planes(cloud, patch, PATCH_STRENGTH, copies, 0.05, EXTENT)
                                                  for copies in (1, 2)]
         assert 0 < len(clouds[0]) < len(cloud)
         expected = occupancy_ious(original, clouds, frame, IOU_VOXEL_M)
         assert patch_setting_ious(original, cloud, patch, PATCH_STRENGTH, (1, 2), 0.05, EXTENT, frame,
                                   IOU_VOXEL_M) == expected
-    assert len(patches._DISK_TABLES[0.05]) == 2 * len(decoded)
     outside = decoded + np.float32(50)
     assert patch_setting_ious(original, outside, patch, PATCH_STRENGTH, (1, 2), 0.05, EXTENT, frame,
                               IOU_VOXEL_M) is None

@@ -63,36 +63,17 @@ def patch_setting_voxels(points: np.ndarray, patch: int, strength: float, copies
     crop), bit 2 + c for those of `patch_planes(points, patch, strength, copies[c], radius_m, upper)`. A point's
     cell is that of its float32 value p in the flat uint8 grid of `shape` voxels from voxel `low`, the voxel of
     floor((p + frame_m) / voxel_m) (as `occupancy._mark_voxels`); the grid must hold the box. The settings share
-    the planes and the moved points; the disk samples come from a table kept for the process (`_disk_table`).
+    the planes, the moved points and the disk samples (sample s of one extra point per point is sample s of two).
     Returns the points marked per bit (the cloud's, then each setting's)."""
     points, box_low, box = checked_points(points, patch, upper)
     copies = np.asarray(copies, dtype=np.int64)
-    disk = _disk_table(len(points) * int(copies.max(initial=0)), float(radius_m))
+    disk = np.empty((len(points) * int(copies.max(initial=0)), 2))  # samples 0, 1, ...: shared by the settings
+    _disk_samples(float(radius_m), GOLDEN_ANGLE, GOLDEN_FRACTION, disk)
     inside = np.zeros(1 + len(copies), dtype=np.int64)
     _patch_settings_kernel(points, patch, float(strength), copies, disk, box_low, box,
                            np.asarray(frame_m, dtype=np.float64), np.asarray(voxel_m, dtype=np.float64),
                            np.asarray(low, dtype=np.int64), np.asarray(shape, dtype=np.int64), grid, inside)
     return inside
-
-
-_DISK_TABLES: dict[float, np.ndarray] = {}
-"""Per disk radius, the (u, v) offsets of the disk samples 0, 1, ... computed so far (`_disk_table`)."""
-
-
-def _disk_table(count: int, radius_m: float) -> np.ndarray:
-    """(>= count, 2) float64: the in-plane offsets (u, v) of disk samples 0 .. count - 1 of `radius_m`, those
-    `_patch_planes_kernel` computes (sample s: radius radius_m sqrt(frac(s GOLDEN_FRACTION)), angle s GOLDEN_ANGLE),
-    extended as larger clouds ask for more (16 bytes a sample: ~8 MB for two extra points per point of a 250k-point
-    decode). Replaced whole when extended, so a thread holding the previous table can still read it."""
-    table = _DISK_TABLES.get(radius_m)
-    if table is None or len(table) < count:
-        known = 0 if table is None else len(table)
-        grown = np.empty((count, 2))
-        if known:
-            grown[:known] = table
-        _disk_samples(known, radius_m, GOLDEN_ANGLE, GOLDEN_FRACTION, grown)
-        _DISK_TABLES[radius_m] = table = grown
-    return table
 
 
 def _option_arrays(options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -281,9 +262,9 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
 
 
 @compiled
-def _disk_samples(first, radius_m, golden_angle, golden_fraction, out):
-    """out[s] = (u, v) of disk sample s for s >= first, with `_patch_planes_kernel`'s arithmetic."""
-    for sample in range(first, out.shape[0]):
+def _disk_samples(radius_m, golden_angle, golden_fraction, out):
+    """out[s] = (u, v), the in-plane offsets of disk sample s, with `_patch_planes_kernel`'s arithmetic."""
+    for sample in range(out.shape[0]):
         radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
         angle = sample * golden_angle
         out[sample, 0], out[sample, 1] = radius * np.cos(angle), radius * np.sin(angle)
