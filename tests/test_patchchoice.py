@@ -112,6 +112,20 @@ def test_patch_option_cells_are_the_distinct_voxels_of_the_reworked_points():
             assert len(set(listed.tolist())) == len(listed) and set(listed.tolist()) == set(linear[begin:end].tolist())
 
 
+def test_the_search_renumbers_the_listed_cells_in_grid_order():
+    """The search's arrays span the cells the lists name, numbered in grid order (across blocks of cells and a last
+    partial block), each with the original's bit."""
+    rng = np.random.default_rng(5)
+    grid = (rng.random(8 * 40 + 3) < 0.3).astype(np.uint8)
+    cells = rng.integers(0, len(grid), 500).astype(np.int32)
+    cells[:2] = len(grid) - 1, 0
+    distinct = np.unique(cells)
+    renumbered = cells.copy()
+    listed = occupancy._compact_cells(grid.copy(), renumbered)
+    assert np.array_equal(renumbered, np.searchsorted(distinct, cells))
+    assert np.array_equal(listed, grid[distinct])
+
+
 def test_the_search_grid_spans_the_tile_box_unless_too_large(monkeypatch):
     """The voxel grid of the tile box [0, extent] gives the choices of the points' own box; when the tile box
     holds more voxels than the grid's limit, the points' own box decides whether the search runs."""

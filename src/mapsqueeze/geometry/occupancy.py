@@ -122,12 +122,54 @@ def patch_option_ious(original: np.ndarray, uncropped: np.ndarray, patch: int, o
             return None
     grid = np.zeros(int(np.prod(shape)), dtype=np.uint8)
     _mark_voxels(np.ascontiguousarray(original, dtype=np.float64), np.zeros(3), voxel, low, shape, 1, grid)
+    n_original = int(np.count_nonzero(grid))
     cells, offsets = patch_option_cells(uncropped, patch, options, upper, frame_m, voxel, low, shape)
+    listed = _compact_cells(grid, cells)  # the search's arrays span only the listed cells
+    del grid
     choice = np.array(start, dtype=np.int64)
     bonus = copy_weight * np.array([option[1] for option in options], dtype=np.float64)
-    before, after = _greedy_choices(grid, cells, offsets, len(options), len(choice), choice, sweeps, bonus,
-                                    bit_weight, rate_sweeps)
+    before, after = _greedy_choices(listed, n_original, cells, offsets, len(options), len(choice), choice, sweeps,
+                                    bonus, bit_weight, rate_sweeps)
     return choice, before, after
+
+
+_BLOCK = 8
+"""Grid cells per number kept by `_compact_cells`."""
+
+
+def _compact_cells(grid: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Renumbers the grid cells in `cells` (in place) 0, 1, ... in grid order, without an index per grid cell: a
+    cell's number is that of the first listed cell of its block of _BLOCK cells plus the listed cells before it in
+    the block (bit 1 of the uint8 grid marks them); returns the grid value (bit 0) of each renumbered cell."""
+    starts = np.empty(-(-len(grid) // _BLOCK), dtype=np.int32 if len(grid) < 2**31 else np.int64)
+    listed = np.empty(_mark_listed(grid, cells, starts), dtype=np.uint8)
+    _renumber_cells(grid, cells, starts, listed)
+    return listed
+
+
+@compiled
+def _mark_listed(grid, cells, starts):
+    """Sets bit 1 of the listed cells; starts[b]: the listed cells before block b; the count of listed cells."""
+    for j in range(cells.shape[0]):
+        grid[cells[j]] |= 2
+    n = 0
+    for block in range(starts.shape[0]):
+        starts[block] = n
+        for cell in range(block * _BLOCK, min((block + 1) * _BLOCK, grid.shape[0])):
+            n += grid[cell] >> 1 & 1
+    return n
+
+
+@compiled
+def _renumber_cells(grid, cells, starts, listed):
+    """cells[j] = its cell's number (`_compact_cells`); listed[number] = bit 0 of the cell."""
+    for j in range(cells.shape[0]):
+        cell = cells[j]
+        number = starts[cell // _BLOCK]
+        for before in range(cell - cell % _BLOCK, cell):
+            number += grid[before] >> 1 & 1
+        cells[j] = number
+        listed[number] = grid[cell] & 1
 
 
 def _voxel_box(corners: list[np.ndarray], voxel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -137,15 +179,13 @@ def _voxel_box(corners: list[np.ndarray], voxel: np.ndarray) -> tuple[np.ndarray
 
 
 @compiled
-def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, sweeps, bonus, bit_weight, rate_sweeps):
+def _greedy_choices(original, n_original, cells, offsets, n_options, n_patches, choice, sweeps, bonus, bit_weight,
+                    rate_sweeps):
     """Greedy search of `patch_option_ious` on cell lists: patch i's distinct cells under option k are
-    cells[offsets[k n + i]:offsets[k n + i + 1]]; bonus[k]: copy_weight x option k's extra points per point;
-    `choice` updated in place; (IoU before, IoU after)."""
+    cells[offsets[k n + i]:offsets[k n + i + 1]], original[cell] whether the original occupies the cell (every
+    listed cell, numbered from 0) and n_original the count of the original's cells, listed or not; bonus[k]:
+    copy_weight x option k's extra points per point; `choice` updated in place; (IoU before, IoU after)."""
     occupied = np.zeros(original.shape[0], dtype=np.int32)  # chosen patches per cell
-    stamp = np.full(original.shape[0], -1, dtype=np.int32)  # fewer than 2^31 tags: sweeps n_patches n_options
-    n_original = 0
-    for cell in range(original.shape[0]):
-        n_original += original[cell]
     for i in range(n_patches):
         k = choice[i] * n_patches + i
         for j in range(offsets[k], offsets[k + 1]):
@@ -161,21 +201,21 @@ def _greedy_choices(original, cells, offsets, n_options, n_patches, choice, swee
     counts = np.zeros(n_options, dtype=np.int64)  # patches per option
     for i in range(n_patches):
         counts[choice[i]] += 1
-    tag = 0
     for phase in range(2):
         rate = bit_weight if phase else 0.0
         for _ in range(rate_sweeps if phase else sweeps):
-            changed, tag, shared, false = _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus,
-                                                        rate, counts, occupied, stamp, tag, n_original, shared, false)
+            changed, shared, false = _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus, rate,
+                                                   counts, occupied, n_original, shared, false)
             if not changed:
                 break
     return before, shared / max(1, n_original + false)
 
 
 @compiled
-def _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus, rate, counts, occupied, stamp, tag,
-                  n_original, shared, false):
-    """One sweep of `_greedy_choices` (rate: IoU per bit of the choices, 0: none); (changed, tag, shared, false)."""
+def _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus, rate, counts, occupied, n_original,
+                  shared, false):
+    """One sweep of `_greedy_choices` (rate: IoU per bit of the choices, 0: none; a list's cells are distinct);
+    (changed, shared, false)."""
     changed = False
     for i in range(n_patches):
         counts[choice[i]] -= 1
@@ -197,13 +237,11 @@ def _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus,
                 cell = cells[j]
                 if weighted and original[cell]:
                     on_original += 1
-                if occupied[cell] == 0 and stamp[cell] != tag:
-                    stamp[cell] = tag
+                if occupied[cell] == 0:
                     if original[cell]:
                         gained += 1
                     else:
                         added += 1
-            tag += 1
             credit = bonus[option] * on_original / max(1, offsets[k + 1] - offsets[k])
             value = (shared + gained + credit) / max(1, n_original + false + added)
             if rate > 0.0:
@@ -223,4 +261,4 @@ def _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus,
                 else:
                     false += 1
             occupied[cell] += 1
-    return changed, tag, shared, false
+    return changed, shared, false

@@ -42,7 +42,7 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     strengths, copies, radii = _option_arrays(options)
     n_patches = len(points) // patch
     offsets = np.zeros(len(options) * n_patches + 1, dtype=np.int64)
-    seen = np.full(int(np.prod(shape)), -1, dtype=np.int32)
+    seen = np.zeros(int(np.prod(shape)), dtype=np.uint8)  # 1: in the list being made (cleared after it)
     # at most one cell per reworked point; pages never written are never mapped in (~0.7M of 6M on a KITTI tile)
     cells = np.empty(len(points) * int(np.sum(1 + copies)), dtype=np.int32)
     scratch = np.empty((patch * int(1 + copies.max(initial=0)), 3), dtype=np.float32)  # one patch's points
@@ -93,7 +93,7 @@ def _rework(points: np.ndarray, patch: int, options, per_patch: bool, upper: np.
     ends = np.empty(len(options) * (len(points) // patch), dtype=np.int64)
     _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, GOLDEN_ANGLE,
                          GOLDEN_FRACTION, out, ends, False, np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64),
-                         np.ones(3, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0, dtype=np.int32),
+                         np.ones(3, dtype=np.int64), np.zeros(0, dtype=np.uint8), np.zeros(0, dtype=np.int32),
                          np.full(len(options), -1, dtype=np.int64))
     return out, ends
 
@@ -143,9 +143,10 @@ def _store_inside(out, kept, x, y, z, low, box):
 
 
 @compiled
-def _append_cells(rows, count, frame, voxel, grid_low, grid_shape, seen, entry, cells, kept):
-    """The grid cells of the float32 points rows[:count] (voxel floor((p + frame) / voxel) from grid_low) that list
-    `entry` lacks, appended to `cells` at `kept` (seen[cell] == entry: already in); the next free position."""
+def _append_cells(rows, count, frame, voxel, grid_low, grid_shape, seen, cells, kept):
+    """The grid cells of the float32 points rows[:count] (voxel floor((p + frame) / voxel) from grid_low) that the
+    list being made lacks, appended to `cells` at `kept` (seen[cell] == 1: already in, then set); the next free
+    position."""
     first = kept
     for i in range(count):  # no branch: vectorised
         x = np.int64(np.floor((np.float64(rows[i, 0]) + frame[0]) / voxel[0])) - grid_low[0]
@@ -154,8 +155,8 @@ def _append_cells(rows, count, frame, voxel, grid_low, grid_shape, seen, entry, 
         cells[first + i] = (x * grid_shape[1] + y) * grid_shape[2] + z
     for i in range(first, first + count):
         cell = cells[i]
-        if seen[cell] != entry:
-            seen[cell] = entry
+        if seen[cell] == 0:
+            seen[cell] = 1
             cells[kept] = cell
             kept += 1
     return kept
@@ -209,14 +210,14 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
     option after option; ends[k n_patches + i]: the row after patch i under option k. Per patch, every patch has
     the same disk samples: those of its first patch are kept and reused (no sine or cosine for the others).
     to_cells (`patch_option_cells`): `out` holds one patch's points at a time, whose distinct voxel cells are
-    appended to `cells` (`_append_cells`; seen: -1 per grid cell, a work array), and ends[l] is the end of list
+    appended to `cells` (`_append_cells`; seen: 0 per grid cell, a work array), and ends[l] is the end of list
     l's cells; the points of a patch under an option with base[option] >= 0 are those of option base[option] (the
     same strength, no extra points), whose cells it copies, followed by its extra points. Returns the rows stored,
     or the cells."""
     n_patches = points.shape[0] // patch
     planes = _fit_planes(points, patch)
     disk = np.empty((patch * max(copies.max(), 0) if per_patch else 0, 2))  # per patch: every patch's samples
-    kept = n_cells = 0
+    kept = n_cells = listed = 0
     for option in range(strengths.shape[0]):
         strength, n_copies, radius_m = strengths[option], copies[option], radii[option]
         for index in range(n_patches):
@@ -228,10 +229,11 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
             copied = to_cells and base[option] >= 0  # the patch's own points: the cells of option base[option]
             if to_cells:
                 kept = 0
+                listed = n_cells
                 if copied:
                     source = base[option] * n_patches + index
                     for j in range(ends[source - 1] if source > 0 else 0, ends[source]):
-                        seen[cells[j]] = entry
+                        seen[cells[j]] = 1
                         cells[n_cells] = cells[j]
                         n_cells += 1
             mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
@@ -254,8 +256,10 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
                     kept = _store_inside(out, kept, px + u * fx + v * sx, py + u * fy + v * sy,
                                          pz + u * fz + v * sz, low, box)
             if to_cells:
-                n_cells = _append_cells(out, kept, frame, voxel, grid_low, grid_shape, seen, entry, cells, n_cells)
+                n_cells = _append_cells(out, kept, frame, voxel, grid_low, grid_shape, seen, cells, n_cells)
                 ends[entry] = n_cells
+                for j in range(listed, n_cells):
+                    seen[cells[j]] = 0
             else:
                 ends[entry] = kept
     return n_cells if to_cells else kept
