@@ -51,9 +51,13 @@ def check_workers(workers: int) -> int:
 
 
 class SerialExecutor:
-    """Runs each job in this process, one after the other."""
+    """Runs each job in this process, one after the other; this process keeps freed memory for the next tile from
+    then on (`_keep_freed_memory`), as with a pool of threads."""
 
     workers = 1
+
+    def __init__(self):
+        _keep_freed_memory()
 
     def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
         return (function(context, item) for item in items)
