@@ -12,7 +12,8 @@ seconds of the whole process tree and its peak resident memory (the sum over the
 50 ms: RSS, which counts the pages processes share, e.g. torch's libraries, once per process, and PSS, which
 splits them among the processes sharing them). The side-by-side run also checks that `--workers 1`, the default
 workers and `--dask-scheduler local` give byte-identical .msq files and decoded clouds. The machine is shared:
-the load average is printed with every row; CPU seconds are the steadier comparison.
+the load average is printed with every row; CPU seconds are the steadier comparison. mapsqueeze's sources are
+compiled to bytecode first, as installing the package does (`compile_package`).
 """
 
 import argparse
@@ -105,6 +106,18 @@ def gpcc_commands(points: np.ndarray, folder: Path) -> tuple[list[str], list[str
     encode = [str(TMC3), *codec.encoder_arguments(TRISOUP, source, stream), "--partitionMethod=2"]
     decode = [str(TMC3), *codec.decoder_arguments(stream, decoded)]
     return encode, decode, stream
+
+
+def compile_package() -> None:
+    """Compile mapsqueeze's sources to bytecode, as installing a wheel does: an editable install run under
+    PYTHONDONTWRITEBYTECODE=1 compiles every module afresh at each start of the CLI (~0.1-0.15 CPU-s, BENCHMARKS.md
+    "Throughput"). The bytecode goes to the package's __pycache__ folders (ignored by git); Python checks it against
+    each source's modification time, so a later edit is never run stale."""
+    import compileall
+
+    import mapsqueeze
+
+    compileall.compile_dir(Path(mapsqueeze.__file__).parent, quiet=1)
 
 
 def load() -> str:
@@ -209,6 +222,7 @@ def main() -> None:
     header = {"date": time.strftime("%Y-%m-%d"), "commit": commit, "load_at_start": load(),
               "machine": f"{os.cpu_count()} CPUs, {CORES} used"}
     print(header, flush=True)
+    compile_package()
     results = scaling(args.scaling, args.out) if args.scaling else side_by_side(args.copies, args.repeats, args.out)
     (args.out / "results.json").write_text(json.dumps({**header, **results, "load_at_end": load()}, indent=2))
     print(json.dumps(results, indent=2))
