@@ -27,11 +27,11 @@ IN_FLIGHT_PER_WORKER = 2
 """Jobs submitted per worker ahead of the oldest unfinished one (keeps workers busy while results are collected)."""
 
 WORKER_MMAP_THRESHOLD_BYTES = 32 << 20
-"""A process running a pool allocates blocks up to this size from malloc's heap instead of mapping each one afresh
+"""A process running tile jobs allocates blocks up to this size from malloc's heap instead of mapping each one afresh
 (glibc's largest; `_keep_freed_memory`)."""
 
 WORKER_TRIM_THRESHOLD_BYTES = 64 << 20
-"""Freed heap a process running a pool keeps for the next tile instead of returning it to the system (a tile's
+"""Freed heap a process running tile jobs keeps for the next tile instead of returning it to the system (a tile's
 arrays)."""
 
 DASK_RETRIES = 3
@@ -212,8 +212,9 @@ def _pool_thread_start(count: int) -> None:
 def _keep_freed_memory() -> None:
     """Let glibc's malloc reuse a tile's freed arrays for the next tile (WORKER_MMAP_THRESHOLD_BYTES,
     WORKER_TRIM_THRESHOLD_BYTES): with its defaults, a pool maps and zero-fills every tile's arrays afresh (~20,000
-    page faults a tile, ~2 of 6 CPU-s decoding 25 tiles in worker processes, BENCHMARKS.md "Throughput"). Nothing
-    changes where the C library has no mallopt."""
+    page faults a tile, ~2 of 6 CPU-s decoding 25 tiles in worker processes), and so does one thread decoding the
+    tiles in turn (~171,000 page faults for those 25 tiles, BENCHMARKS.md "Throughput"). Nothing changes where the C
+    library has no mallopt."""
     import ctypes
 
     try:
