@@ -28,3 +28,15 @@ def test_info_imports_no_heavy_library(tmp_path):
     assert result.returncode == 0, result.stderr
     loaded = result.stdout.split()
     assert "mapsqueeze" in loaded and not set(HEAVY) & set(loaded)
+
+
+def test_compress_loads_no_scipy_linalg_and_kernels_with_a_blas_still_compile():
+    probe = ("import sys\nimport numpy as np\nimport mapsqueeze\nrng = np.random.default_rng(0)\n"
+             "points = np.c_[rng.random((3000, 2)) * 30, rng.normal(1, 0.05, 3000)]\n"
+             "assert len(mapsqueeze.compress(points, model='e0', workers=1)) > 0\n"
+             "print('scipy.linalg' in sys.modules)\n"
+             "import numba\n"
+             "print(numba.njit(lambda a, b: np.dot(a, b))(np.ones(3), np.full(3, 2.0)), 'scipy.linalg' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["False", "6.0", "True"]

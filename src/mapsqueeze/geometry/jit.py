@@ -3,14 +3,38 @@
 numba caches beside the package (`__pycache__`), in NUMBA_CACHE_DIR or in ~/.cache/numba, and refuses to
 decorate ("cannot cache function") when none is writable, e.g. an installed package run by a user whose home is
 read-only. `compiled` then caches in a per-user folder of the temporary directory, or compiles at each start.
+
+numba's array functions (`numba.np.arraymath`, loaded with its other registries before the first kernel runs)
+import scipy.linalg to learn whether a BLAS is there (~27 MB resident, 0.17-0.22 CPU-s); none of these kernels
+calls one, so that module is loaded here with scipy.linalg held back (`_load_array_functions`).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 import tempfile
 
 import numba
+
+
+def _load_array_functions() -> None:
+    """Import `numba.np.arraymath` with scipy.linalg held back, then set its import-time BLAS probe to whether
+    scipy is installed (what numba would have found): a kernel that needs a BLAS (np.dot, np.linalg, np.correlate
+    of floats) still imports scipy.linalg, as it is compiled (numba's `ensure_blas`). Nothing changes once either
+    module is loaded."""
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    sys.modules["scipy.linalg"] = None  # `import scipy.linalg...` raises ImportError
+    try:
+        import numba.np.arraymath
+    finally:
+        del sys.modules["scipy.linalg"]
+    numba.np.arraymath._HAVE_BLAS = importlib.util.find_spec("scipy") is not None
+
+
+_load_array_functions()
 
 
 def fallback_cache_dir() -> str:
