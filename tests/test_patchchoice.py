@@ -28,7 +28,7 @@ from mapsqueeze.codec.postfilter import (
 )
 from mapsqueeze.codec.tilepoints import keep_inside
 from mapsqueeze.errors import ContainerError
-from mapsqueeze.geometry import occupancy
+from mapsqueeze.geometry import occupancy, patches
 from mapsqueeze.geometry.occupancy import patch_option_ious
 from mapsqueeze.geometry.patches import patch_option_cells, patch_options, patch_planes
 from mapsqueeze.metrics import IOU_VOXEL_M, iou
@@ -93,9 +93,12 @@ def test_patch_options_give_the_bytes_of_each_patch_reworked_alone():
     assert not np.array_equal(whole[512 * 1:512 * 2], expected[4 * n + 1])
 
 
-def test_patch_option_cells_are_the_distinct_voxels_of_the_reworked_points():
+@pytest.mark.parametrize("reserved_part", [4, 1, 10**9])
+def test_patch_option_cells_are_the_distinct_voxels_of_the_reworked_points(monkeypatch, reserved_part):
     """The cells the search reads are those of `patch_options`'s points (float32, voxel floor((p + frame) / voxel)),
-    each patch's under each option once."""
+    each patch's under each option once, whether the first reservation of cells holds them (single-point patches:
+    about one cell per point, more than the default reservation) or not (a reservation of one patch's points)."""
+    monkeypatch.setattr(patches, "CELLS_RESERVED_PART", reserved_part)
     _, decoded = mixed_patches()
     decoded = decoded[:256 * 20]
     voxel = np.asarray(IOU_VOXEL_M)

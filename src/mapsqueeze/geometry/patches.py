@@ -37,22 +37,33 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     (metres; as `occupancy._mark_voxels`). The grid must hold every point inside [0, upper] (fewer than 2^31
     cells). An option with extra points whose pull strength an earlier option without extra points has starts
     from that option's cells of the patch (the same moved points), then adds its extra points' cells: a third less
-    work for PATCH_OPTIONS; the cells of a list come in no particular order."""
+    work for PATCH_OPTIONS; the cells of a list come in no particular order. The cells are written into a
+    reservation of CELLS_RESERVED_PART of the reworked points (made again whole when too short), not one per point:
+    the search's peak memory, on every tile (malloc's kept heap maps in what any tile touches)."""
     points, box_low, box = checked_points(points, patch, upper)
     strengths, copies, radii = _option_arrays(options)
     n_patches = len(points) // patch
     offsets = np.zeros(len(options) * n_patches + 1, dtype=np.int64)
     seen = np.zeros(int(np.prod(shape)), dtype=np.uint8)  # 1: in the list being made (cleared after it)
-    # at most one cell per reworked point; pages never written are never mapped in (~0.7M of 6M on a KITTI tile)
-    cells = np.empty(len(points) * int(np.sum(1 + copies)), dtype=np.int32)
     scratch = np.empty((patch * int(1 + copies.max(initial=0)), 3), dtype=np.float32)  # one patch's points
     base = np.array([next((j for j in range(k) if strengths[j] == strengths[k] and copies[j] == 0), -1)
                      if copies[k] else -1 for k in range(len(options))], dtype=np.int64)
-    _patch_planes_kernel(points, patch, strengths, copies, radii, True, box_low, box, GOLDEN_ANGLE, GOLDEN_FRACTION,
-                         scratch, offsets[1:], True, np.asarray(frame_m, dtype=np.float64),
-                         np.asarray(voxel_m, dtype=np.float64), np.asarray(low, dtype=np.int64),
-                         np.asarray(shape, dtype=np.int64), seen, cells, base)
-    return cells[:offsets[-1]], offsets
+    most = len(points) * int(np.sum(1 + copies))  # one cell per reworked point
+    for size in (min(most, most // CELLS_RESERVED_PART + len(scratch)), most):
+        cells = np.empty(size, dtype=np.int32)
+        n_cells = _patch_planes_kernel(points, patch, strengths, copies, radii, True, box_low, box, GOLDEN_ANGLE,
+                                       GOLDEN_FRACTION, scratch, offsets[1:], True, np.asarray(frame_m, dtype=np.float64),
+                                       np.asarray(voxel_m, dtype=np.float64), np.asarray(low, dtype=np.int64),
+                                       np.asarray(shape, dtype=np.int64), seen, cells, base)
+        if n_cells >= 0:
+            return cells[:n_cells], offsets
+    raise AssertionError("unreachable: one cell per reworked point fits")
+
+
+CELLS_RESERVED_PART = 4
+"""`patch_option_cells` first reserves this part of one cell per reworked point (plus one patch's points): the
+distinct cells of the 25-tile KITTI map's and the real submaps' tiles take 6-12 % of it (e0..e3); when they need
+more, the kernel stops at the list that would not fit and runs again with room for every reworked point."""
 
 
 def patch_setting_voxels(points: np.ndarray, patch: int, strength: float, copies, radius_m: float,
@@ -213,7 +224,7 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
     appended to `cells` (`_append_cells`; seen: 0 per grid cell, a work array), and ends[l] is the end of list
     l's cells; the points of a patch under an option with base[option] >= 0 are those of option base[option] (the
     same strength, no extra points), whose cells it copies, followed by its extra points. Returns the rows stored,
-    or the cells."""
+    or the cells (-1, `seen` clear, when `cells` lacks room for a list and one patch's points)."""
     n_patches = points.shape[0] // patch
     planes = _fit_planes(points, patch)
     disk = np.empty((patch * max(copies.max(), 0) if per_patch else 0, 2))  # per patch: every patch's samples
@@ -230,9 +241,15 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
             if to_cells:
                 kept = 0
                 listed = n_cells
+                first_cell = n_copied = 0
                 if copied:
                     source = base[option] * n_patches + index
-                    for j in range(ends[source - 1] if source > 0 else 0, ends[source]):
+                    first_cell = ends[source - 1] if source > 0 else 0
+                    n_copied = ends[source] - first_cell
+                if n_cells + n_copied + out.shape[0] > cells.shape[0]:
+                    return -1  # `cells` too short; `seen` is clear
+                if copied:
+                    for j in range(first_cell, ends[source]):
                         seen[cells[j]] = 1
                         cells[n_cells] = cells[j]
                         n_cells += 1
