@@ -140,7 +140,8 @@ _BLOCK = 8
 def _compact_cells(grid: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """Renumbers the grid cells in `cells` (in place) 0, 1, ... in grid order, without an index per grid cell: a
     cell's number is that of the first listed cell of its block of _BLOCK cells plus the listed cells before it in
-    the block (bit 1 of the uint8 grid marks them); returns the grid value (bit 0) of each renumbered cell."""
+    the block (bit 1 of the uint8 grid marks them, bits 2-4 hold that count); returns the grid value (bit 0) of
+    each renumbered cell."""
     starts = np.empty(-(-len(grid) // _BLOCK), dtype=np.int32 if len(grid) < 2**31 else np.int64)
     listed = np.empty(_mark_listed(grid, cells, starts), dtype=np.uint8)
     _renumber_cells(grid, cells, starts, listed)
@@ -149,14 +150,17 @@ def _compact_cells(grid: np.ndarray, cells: np.ndarray) -> np.ndarray:
 
 @compiled
 def _mark_listed(grid, cells, starts):
-    """Sets bit 1 of the listed cells; starts[b]: the listed cells before block b; the count of listed cells."""
+    """Sets bit 1 of the listed cells, and in bits 2-4 of each the listed cells before it in its block; starts[b]:
+    the listed cells before block b; the count of listed cells."""
     for j in range(cells.shape[0]):
         grid[cells[j]] |= 2
     n = 0
     for block in range(starts.shape[0]):
         starts[block] = n
         for cell in range(block * _BLOCK, min((block + 1) * _BLOCK, grid.shape[0])):
-            n += grid[cell] >> 1 & 1
+            if grid[cell] & 2:
+                grid[cell] |= (n - starts[block]) << 2
+                n += 1
     return n
 
 
@@ -165,9 +169,7 @@ def _renumber_cells(grid, cells, starts, listed):
     """cells[j] = its cell's number (`_compact_cells`); listed[number] = bit 0 of the cell."""
     for j in range(cells.shape[0]):
         cell = cells[j]
-        number = starts[cell // _BLOCK]
-        for before in range(cell - cell % _BLOCK, cell):
-            number += grid[before] >> 1 & 1
+        number = starts[cell // _BLOCK] + (grid[cell] >> 2)
         cells[j] = number
         listed[number] = grid[cell] & 1
 
