@@ -43,7 +43,8 @@ def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return order[first]
 
 
-def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int) -> np.ndarray:
+def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int,
+                     dtype: type = np.int64) -> np.ndarray:
     """Padded neighbour indices of each query within `radius`, capped at `max_neighbors`.
 
     Neighbours are those at distance <= radius (float64 of the float32 inputs), listed in scan order: by search
@@ -51,14 +52,17 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     of source and queries; x slowest, z fastest), then by index. When a query has m > max_neighbors of them, an
     evenly spread subset is kept: column j holds the neighbour at position floor(m * j / max_neighbors) of that
     list (the reference's rule, applied to its octree's order; a scan of cells is likewise spatial). Missing
-    entries hold len(source) (a "shadow" index). Returns (Q, K) int64, K = the largest count (<= cap). A compiled
+    entries hold len(source) (a "shadow" index). Returns (Q, K) of `dtype` (int64, or int32 for a source of
+    fewer than 2^31 points: half the memory), K = the largest count (<= cap). A compiled
     kernel scans the 5 x 5 x 5 cells around each query on torch.get_num_threads() threads over contiguous query
     ranges; the result does not depend on the thread count.
     """
     source = np.ascontiguousarray(source, dtype=np.float32)
     queries = np.ascontiguousarray(queries, dtype=np.float32)
     n_source, n_queries = len(source), len(queries)
-    result = np.full((n_queries, max_neighbors), n_source, dtype=np.int64)
+    if np.iinfo(dtype).max < n_source:
+        raise ValueError(f"{np.dtype(dtype).name} cannot index {n_source:,} points")
+    result = np.full((n_queries, max_neighbors), n_source, dtype=dtype)
     counts = np.zeros(n_queries, dtype=np.int64)
     if n_source and n_queries and max_neighbors > 0:
         (source_low, source_high), (query_low, query_high) = bounding_box(source), bounding_box(queries)

@@ -74,14 +74,13 @@ def patch_setting_voxels(points: np.ndarray, patch: int, strength: float, copies
     crop), bit 2 + c for those of `patch_planes(points, patch, strength, copies[c], radius_m, upper)`. A point's
     cell is that of its float32 value p in the flat uint8 grid of `shape` voxels from voxel `low`, the voxel of
     floor((p + frame_m) / voxel_m) (as `occupancy._mark_voxels`); the grid must hold the box. The settings share
-    the planes, the moved points and the disk samples (sample s of one extra point per point is sample s of two).
+    the planes and the moved points; each computes its own disk samples.
     Returns the points marked per bit (the cloud's, then each setting's)."""
     points, box_low, box = checked_points(points, patch, upper)
     copies = np.asarray(copies, dtype=np.int64)
-    disk = np.empty((len(points) * int(copies.max(initial=0)), 2))  # samples 0, 1, ...: shared by the settings
-    _disk_samples(float(radius_m), GOLDEN_ANGLE, GOLDEN_FRACTION, disk)
     inside = np.zeros(1 + len(copies), dtype=np.int64)
-    _patch_settings_kernel(points, patch, float(strength), copies, disk, box_low, box,
+    _patch_settings_kernel(points, patch, float(strength), copies, float(radius_m), GOLDEN_ANGLE, GOLDEN_FRACTION,
+                           box_low, box,
                            np.asarray(frame_m, dtype=np.float64), np.asarray(voxel_m, dtype=np.float64),
                            np.asarray(low, dtype=np.int64), np.asarray(shape, dtype=np.int64), grid, inside)
     return inside
@@ -265,9 +264,7 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
                     if reuse:
                         u, v = disk[sample, 0], disk[sample, 1]
                     else:
-                        radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
-                        angle = sample * golden_angle
-                        u, v = radius * np.cos(angle), radius * np.sin(angle)
+                        u, v = _disk_sample(sample, radius_m, golden_angle, golden_fraction)
                         if per_patch:
                             disk[sample, 0], disk[sample, 1] = u, v
                     kept = _store_inside(out, kept, px + u * fx + v * sx, py + u * fy + v * sy,
@@ -283,12 +280,11 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
 
 
 @compiled
-def _disk_samples(radius_m, golden_angle, golden_fraction, out):
-    """out[s] = (u, v), the in-plane offsets of disk sample s, with `_patch_planes_kernel`'s arithmetic."""
-    for sample in range(out.shape[0]):
-        radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
-        angle = sample * golden_angle
-        out[sample, 0], out[sample, 1] = radius * np.cos(angle), radius * np.sin(angle)
+def _disk_sample(sample, radius_m, golden_angle, golden_fraction):
+    """(u, v): the in-plane offsets of disk sample `sample` (an integer) on a disk of radius_m."""
+    radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
+    angle = sample * golden_angle
+    return radius * np.cos(angle), radius * np.sin(angle)
 
 
 @compiled
@@ -307,10 +303,11 @@ def _cell(x, y, z, frame, voxel, grid_low, grid_shape):
 
 
 @compiled
-def _patch_settings_kernel(points, patch, strength, copies, disk, low, box, frame, voxel, grid_low, grid_shape, grid,
-                           inside):
+def _patch_settings_kernel(points, patch, strength, copies, radius_m, golden_angle, golden_fraction, low, box, frame,
+                           voxel, grid_low, grid_shape, grid, inside):
     """`patch_setting_voxels`'s kernel: the points of `_patch_planes_kernel` (one option at a time, samples
-    numbered from the cloud's first point) marked in the grid as they are made."""
+    numbered from the cloud's first point) marked in the grid as they are made; each setting computes its disk
+    samples (no table of them: 16 MB on a 490,000-point tile)."""
     planes = _fit_planes(points, patch)
     moved_bits = 0
     for c in range(copies.shape[0]):
@@ -334,8 +331,7 @@ def _patch_settings_kernel(points, patch, strength, copies, disk, low, box, fram
             for c in range(copies.shape[0]):
                 bit = 1 << (2 + c)
                 for j in range(copies[c]):
-                    sample = i * copies[c] + j
-                    u, v = disk[sample, 0], disk[sample, 1]
+                    u, v = _disk_sample(i * copies[c] + j, radius_m, golden_angle, golden_fraction)
                     x, y, z = (np.float32(px + u * fx + v * sx), np.float32(py + u * fy + v * sy),
                                np.float32(pz + u * fz + v * sz))
                     if _in_box(x, y, z, low, box):

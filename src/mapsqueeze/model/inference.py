@@ -193,7 +193,8 @@ class InferenceNetwork:
 
         kept = grid_subsample(points, block.grid_size)
         queries = np.ascontiguousarray(points[kept])
-        neighbors = radius_neighbors(points, queries, block.kernel_radius, block.max_neighbors)
+        neighbors = radius_neighbors(points, queries, block.kernel_radius, block.max_neighbors,
+                                     np.int32 if len(points) < 2**31 else np.int64)
         conv_input = features if block.preactivation is None else _affine_leaky_relu(
             features, block.preactivation, self.slope)
         padded = np.concatenate([conv_input, np.zeros((1, conv_input.shape[1]), dtype=np.float32)])
