@@ -154,3 +154,29 @@ def test_introsort_handles_tiny_inputs_and_refuses_nan():
         np.testing.assert_array_equal(introsort_argsort(keys), torch.argsort(torch.from_numpy(keys)).numpy())
     with pytest.raises(ValueError, match="NaN"):
         introsort_argsort(np.array([1.0, np.nan]))
+
+
+def test_the_activation_gives_the_same_bits_with_and_without_the_compiled_kernel(monkeypatch):
+    """Compress (numba loaded) runs the decoder's bias + LeakyReLU in the encoder's compiled kernel, decompress in
+    numpy's row blocks: the same bits, so the decodes the encoder measures are the decoder's."""
+    from mapsqueeze.model import inference, influences
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(9000, 256)).astype(np.float32)
+    bias = rng.normal(size=256).astype(np.float32)
+    x[::5, :7] = -bias[:7]  # x + b == +0.0
+    x[1::5, :3] = 0.0
+    bias[8:12] = -0.0
+    calls = []
+    kernel = influences.bias_leaky_relu
+    monkeypatch.setattr(influences, "bias_leaky_relu", lambda *args: calls.append(kernel(*args)))
+    compiled, blocks = x.copy(), x.copy()
+    inference._bias_leaky_relu(compiled, bias, np.float32(0.01))
+    assert calls
+    monkeypatch.delitem(sys.modules, "mapsqueeze.model.influences")
+    inference._bias_leaky_relu(blocks, bias, np.float32(0.01))
+    assert len(calls) == 1
+    expected = x + bias
+    expected = np.where(expected > 0, expected, expected * np.float32(0.01))
+    assert np.array_equal(compiled.view(np.uint32), blocks.view(np.uint32))
+    assert np.array_equal(blocks.view(np.uint32), expected.view(np.uint32))
