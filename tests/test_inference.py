@@ -12,6 +12,7 @@ import torch
 from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.introsort import introsort_argsort
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model, shipped_models
+from mapsqueeze.model.compression import CompressionModel
 from mapsqueeze.model.inference import InferenceNetwork
 
 FEATURE_TOLERANCE = 1e-4
@@ -78,6 +79,26 @@ def test_numpy_forward_matches_torch_with_random_weights(rate):
     assert_forwards_agree(network, street_tile(8000, seed=2))
 
 
+@pytest.mark.parametrize("rate", ["e0", "e3"])
+def test_decode_gradient_matches_torch_autograd(rate):
+    """`decode_traced` gives `decode`'s output, and `decode_gradient` the gradient torch's autograd gives through
+    the decoder (random weights: the LeakyReLUs' negative sides and tanh's slopes matter)."""
+    network = build_model(ModelConfig.for_rate(rate), seed=3).eval()
+    model = CompressionModel.from_network(network, "random", "")
+    rng = np.random.default_rng(5)
+    points = rng.random((300, 3), dtype=np.float32)  # more than one of the decoder's groups at e3
+    features = rng.normal(0, 1, (300, 3)).astype(np.float32)
+    output, trace = model.inference.decode_traced(points, features)
+    assert np.array_equal(output, model.inference.decode(points, features))
+    weights = rng.normal(0, 1, output.shape).astype(np.float32)
+    torch_points, torch_features = (torch.from_numpy(a).requires_grad_(True) for a in (points, features))
+    (network.decoder(torch_points, torch_features)[0] * torch.from_numpy(weights)).sum().backward()
+    point_gradient, feature_gradient = model.inference.decode_gradient(trace, weights)
+    np.testing.assert_allclose(point_gradient, torch_points.grad.numpy(), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(feature_gradient, torch_features.grad.numpy(), rtol=1e-3, atol=1e-4)
+    assert np.abs(feature_gradient).max() > 1e-2
+
+
 def test_the_torch_passes_of_other_devices_agree_with_the_numpy_forward():
     """`torch_encode` / `torch_decode` (what a model on a GPU runs) here on the CPU network."""
     from mapsqueeze.model.autoencoder import torch_decode, torch_encode
@@ -116,12 +137,13 @@ def test_the_model_pickles_without_its_torch_network():
     np.testing.assert_array_equal(copy.encode(points).features, embedding.features)
 
 
-def test_compress_and_decompress_on_the_cpu_import_no_torch(tmp_path):
+def test_compress_refine_and_decompress_on_the_cpu_import_no_torch(tmp_path):
     probe = (
         "import sys, numpy as np, mapsqueeze\n"
         "rng = np.random.default_rng(0)\n"
         "points = np.c_[rng.random((20000, 2)) * 70, rng.normal(1, 0.05, 20000)] + [1000.0, 2000.0, 0.0]\n"
         "data = mapsqueeze.compress(points, model='e1', workers=1)\n"
+        "assert mapsqueeze.compress(points, model='e1', workers=1, refine_steps=1) != data\n"
         "assert len(mapsqueeze.decompress(data, workers=1)) > 0\n"
         "import mapsqueeze.codec.compress, mapsqueeze.codec.decompress, mapsqueeze.model\n"  # the workers' modules
         "print('torch' in sys.modules)\n")

@@ -1,4 +1,4 @@
-"""The DEPOCO autoencoder (paper Fig. 2) on torch: training, encode-time refinement, passes on a GPU."""
+"""The DEPOCO autoencoder (paper Fig. 2) on torch: training, passes on a GPU."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from mapsqueeze.geometry.threads import one_torch_thread
 from mapsqueeze.model.config import ModelConfig
 from mapsqueeze.model.deconv import AdaptiveDeconv
 from mapsqueeze.model.kpconv import EncoderBlock
-from mapsqueeze.model.refine import refine_embedding
 
 
 class Encoder(nn.Module):
@@ -90,12 +89,3 @@ def torch_decode(network: Autoencoder, points: np.ndarray, features: np.ndarray)
     with one_torch_thread():
         output, _ = network.decoder(torch.from_numpy(points).to(device), torch.from_numpy(features).to(device))
     return _to_numpy(output)[0]
-
-
-def torch_refine(network: Autoencoder, target: np.ndarray, points: np.ndarray, features: np.ndarray,
-                 steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """`refine_embedding` with the network's decoder on its device; numpy arrays in and out, normalised."""
-    device = next(network.parameters()).device
-    tensors = (torch.from_numpy(a).to(device) for a in (target, points, features))
-    with one_torch_thread():
-        return _to_numpy(*refine_embedding(network.decoder, *tensors, steps))

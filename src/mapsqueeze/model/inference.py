@@ -224,9 +224,7 @@ class InferenceNetwork:
         float32 normalised, children in the order of their parents."""
         points = np.ascontiguousarray(points, dtype=np.float32)
         features = np.ascontiguousarray(features, dtype=np.float32)
-        factors = self.config.upsampling_factors
-        group = max(1, DECODE_GROUP_ROWS // int(np.prod(factors[:-1], dtype=np.int64)))
-        children = int(np.prod(factors, dtype=np.int64))
+        group, children = self._decode_groups()
         out = np.empty((len(points) * children, 3), dtype=np.float32)
         tasks = [partial(self._decode_group, points[start:start + group], features[start:start + group],
                          out[start * children:(start + group) * children]) for start in range(0, len(points), group)]
@@ -242,6 +240,84 @@ class InferenceNetwork:
         for axis in range(3):  # column by column: numpy's (K, 3) + (3,) runs a 3-long inner loop per row
             out[:, axis] += self.refine[1][axis]
         out += points
+
+    def decode_traced(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, list]:
+        """`decode`'s output (the same groups, the same values) and what `decode_gradient` needs of the pass: per
+        group and deconvolution, where the LeakyReLUs' inputs are <= 0 (bool) and the offsets' tanh values."""
+        points = np.ascontiguousarray(points, dtype=np.float32)
+        features = np.ascontiguousarray(features, dtype=np.float32)
+        group, children = self._decode_groups()
+        out = np.empty((len(points) * children, 3), dtype=np.float32)
+        starts = range(0, len(points), group)
+        trace: list = [None] * len(starts)
+        tasks = [partial(self._traced_group, points[start:start + group], features[start:start + group],
+                         out[start * children:(start + group) * children], trace, i) for i, start in enumerate(starts)]
+        with one_blas_thread():
+            run_shared(tasks)
+        return out, trace
+
+    def decode_gradient(self, trace: list, output_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The gradient of a function of the decoder's output with respect to the embedding: given the trace of
+        `decode_traced(points, features)` and that function's gradient with respect to its output (same shape and
+        order), the gradients with respect to `points` and `features` (float32; backpropagation through the
+        decoder group by group: each embedding point's gradient comes from its own children alone)."""
+        output_gradient = np.ascontiguousarray(output_gradient, dtype=np.float32)
+        group, children = self._decode_groups()
+        n_points = len(output_gradient) // children
+        point_gradient = np.empty((n_points, 3), dtype=np.float32)
+        feature_gradient = np.empty((n_points, self.config.embedding_dim), dtype=np.float32)
+        tasks = [partial(self._gradient_group, trace[i], output_gradient[start * children:(start + group) * children],
+                         point_gradient[start:start + group], feature_gradient[start:start + group])
+                 for i, start in enumerate(range(0, n_points, group))]
+        with one_blas_thread():
+            run_shared(tasks)
+        return point_gradient, feature_gradient
+
+    def _decode_groups(self) -> tuple[int, int]:
+        """(embedding points per group of `decode`, output points per embedding point)."""
+        factors = self.config.upsampling_factors
+        group = max(1, DECODE_GROUP_ROWS // int(np.prod(factors[:-1], dtype=np.int64)))
+        return group, int(np.prod(factors, dtype=np.int64))
+
+    def _traced_group(self, points: np.ndarray, features: np.ndarray, out: np.ndarray, trace: list, index: int):
+        """`_decode_group` keeping the trace of each deconvolution (`decode_traced`)."""
+        kept = []
+        for block in self.decoder:
+            n = len(points)
+            hidden = _affine_leaky_relu(features, block.first, self.slope)
+            offsets = _affine(hidden[:, :block.hidden], block.offset)
+            np.tanh(offsets, out=offsets)
+            features = _affine_leaky_relu(hidden[:, block.hidden:], block.feature, self.slope)
+            kept.append((hidden <= 0, offsets, features <= 0))
+            children = offsets * self.offset_scale
+            children = children.reshape(n, block.factor, 3)
+            children += points[:, None, :]
+            points, features = children.reshape(n * block.factor, 3), features.reshape(n * block.factor, -1)
+        np.matmul(features, self.refine[0], out=out)
+        for axis in range(3):
+            out[:, axis] += self.refine[1][axis]
+        out += points
+        trace[index] = kept
+
+    def _gradient_group(self, kept: list, output_gradient: np.ndarray, point_gradient: np.ndarray,
+                        feature_gradient: np.ndarray) -> None:
+        """`decode_gradient` on a group of embedding points, written into the two gradient arrays."""
+        grad_points = output_gradient  # the output is the last level's points plus a function of its features
+        grad_features = output_gradient @ np.ascontiguousarray(self.refine[0].T)
+        for block, (hidden_off, offsets, children_off) in zip(reversed(self.decoder), reversed(kept)):
+            n = len(offsets)
+            grad_children = grad_features.reshape(n, -1)
+            np.multiply(grad_children, self.slope, out=grad_children, where=children_off.reshape(n, -1))
+            grad_offsets = grad_points.reshape(n, -1) * self.offset_scale
+            grad_offsets *= 1 - offsets * offsets  # tanh'
+            grad_hidden = np.empty((n, 2 * block.hidden), dtype=np.float32)
+            np.matmul(grad_offsets, block.offset[0].T, out=grad_hidden[:, :block.hidden])
+            np.matmul(grad_children, block.feature[0].T, out=grad_hidden[:, block.hidden:])
+            np.multiply(grad_hidden, self.slope, out=grad_hidden, where=hidden_off)
+            grad_features = grad_hidden @ block.first[0].T
+            grad_points = grad_points.reshape(n, block.factor, 3).sum(axis=1)
+        point_gradient[:] = grad_points
+        feature_gradient[:] = grad_features
 
     def _deconv_forward(self, block: _Deconv, points: np.ndarray, features: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:

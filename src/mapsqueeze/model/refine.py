@@ -2,21 +2,22 @@
 
 The encoder predicts an embedding in one pass; the decoder is what the reader will run. With the tile's points at
 hand, the compressor can move the embedding towards a better reconstruction: a few Adam steps on the embedding
-features and positions, minimising D_e (`mean_distance_loss`) between the frozen decoder's output and the tile's
-points. The file format and the decoder are unchanged; 0 steps is the paper's encoder output. Measured on the real
-submaps (BENCHMARKS.md, "Encode-time refinement"): 20 steps lower D_e by about 10 % at the same bpp.
+features and positions, minimising D_e (`loss.mean_distance_loss`) between the frozen decoder's output and the
+tile's points. The file format and the decoder are unchanged; 0 steps is the paper's encoder output. Measured on the
+real submaps (BENCHMARKS.md, "Encode-time refinement"): 20 steps lower D_e by about 10 % at the same bpp.
+
+Numpy throughout, without torch: each step is the numpy decode keeping a compact trace (`InferenceNetwork.
+decode_traced`: the LeakyReLUs' signs as bools and the tanh values, about a tenth of the activations), the nearest
+neighbours both ways from KD-trees, the gradient of D_e with respect to the output, its backpropagation to the
+embedding (`InferenceNetwork.decode_gradient`), then torch's Adam update (default betas and eps) written out.
 """
 
 from __future__ import annotations
 
-import contextlib
-
 import numpy as np
-import torch
 from pykdtree.kdtree import KDTree
-from torch.optim.adam import adam
 
-from mapsqueeze.model.loss import mean_distance_loss
+from mapsqueeze.model.inference import InferenceNetwork
 
 FEATURE_LR = 0.1
 """Adam step size of the embedding features (feature units; the q quantiser's step is ~0.2 of their spread)."""
@@ -24,76 +25,71 @@ FEATURE_LR = 0.1
 POSITION_LR = 0.0005
 """Adam step size of the embedding positions, normalised units (x map_size: 2 cm per step for 40 m tiles)."""
 
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
+DISTANCE_EPS = 1e-12
+"""Added to squared distances under the square root: keeps the gradient finite where a point sits on its
+neighbour (as `loss.mean_distance_loss`)."""
+
 
 class _Adam:
-    """torch's Adam (default betas and eps) over (tensor, step size) pairs, through its functional form `adam`:
-    constructing `torch.optim.Adam` imports torch._dynamo, ~2.6 s once per process."""
+    """Adam (torch.optim.Adam's update in float32, without weight decay or amsgrad) of one array."""
 
-    def __init__(self, groups: list[tuple[torch.Tensor, float]]):
-        self.groups = [(p, lr, torch.zeros_like(p), torch.zeros_like(p), torch.tensor(0.0)) for p, lr in groups]
+    def __init__(self, value: np.ndarray, lr: float):
+        self.value, self.lr, self.count = value, lr, 0
+        self.mean = np.zeros_like(value)
+        self.mean_sq = np.zeros_like(value)
 
-    @torch.no_grad()
-    def step(self):
-        """One update from the tensors' .grad, which it then clears."""
-        for p, lr, mean, mean_sq, count in self.groups:
-            adam([p], [p.grad], [mean], [mean_sq], [], [count], foreach=False, capturable=False, differentiable=False,
-                 fused=None, grad_scale=None, found_inf=None, has_complex=False, amsgrad=False, beta1=0.9,
-                 beta2=0.999, lr=lr, weight_decay=0.0, eps=1e-8, maximize=False)
-            p.grad = None
-
-
-@contextlib.contextmanager
-def _frozen(module: torch.nn.Module):
-    """No gradients for the module's parameters inside the block (flags restored after)."""
-    flags = [p.requires_grad for p in module.parameters()]
-    try:
-        for p in module.parameters():
-            p.requires_grad_(False)
-        yield module
-    finally:
-        for p, flag in zip(module.parameters(), flags):
-            p.requires_grad_(flag)
+    def step(self, gradient: np.ndarray) -> None:
+        beta1, beta2 = ADAM_BETAS
+        self.count += 1
+        self.mean += (gradient - self.mean) * np.float32(1 - beta1)
+        self.mean_sq *= np.float32(beta2)
+        self.mean_sq += np.float32(1 - beta2) * gradient * gradient
+        denominator = np.sqrt(self.mean_sq) / np.float32(np.sqrt(1 - beta2 ** self.count)) + np.float32(ADAM_EPS)
+        self.value -= np.float32(self.lr / (1 - beta1 ** self.count)) * self.mean / denominator
 
 
-@contextlib.contextmanager
-def _deterministic(device: torch.device):
-    """On a GPU, torch's deterministic kernels inside the block (the backward of a gather with repeated indices
-    otherwise accumulates atomically, and 20 steps amplify that into different files); kernels without a
-    deterministic version (cuBLAS without CUBLAS_WORKSPACE_CONFIG) only warn. Both of torch's settings are restored
-    after. Nothing on the CPU, where the loss's gathers are deterministic already (`loss._matched_squared_distances`)
-    and the first `torch.use_deterministic_algorithms` call would import torch._inductor (~2.6 s)."""
-    if device.type == "cpu":
-        yield
-        return
-    previous = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    try:
-        yield
-    finally:
-        torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
+def distance_gradient(target: np.ndarray, target_tree: KDTree, output: np.ndarray) -> np.ndarray:
+    """The gradient of D_e (`loss.mean_distance_loss`: half the mean distance of every output point to its nearest
+    target point, plus half that of every target point to its nearest output point) with respect to `output` (K, 3)
+    float32; the sums over target points sharing a nearest output point run in target order (`np.bincount`)."""
+    _, to_target = target_tree.query(output, k=1)
+    _, to_output = KDTree(output).query(target, k=1)
+    to_output = to_output.astype(np.int64)
+    away = output - target[to_target]
+    gradient = away * (0.5 / len(output) / np.sqrt((away * away).sum(axis=1) + DISTANCE_EPS))[:, None]
+    towards = output[to_output] - target
+    towards *= (0.5 / len(target) / np.sqrt((towards * towards).sum(axis=1) + DISTANCE_EPS))[:, None]
+    for axis in range(3):
+        gradient[:, axis] += np.bincount(to_output, towards[:, axis], len(output)).astype(np.float32)
+    return gradient
 
 
-def refine_embedding(decoder: torch.nn.Module, target: torch.Tensor, points: torch.Tensor, features: torch.Tensor,
+def refine_embedding(network: InferenceNetwork, target: np.ndarray, points: np.ndarray, features: np.ndarray,
                      steps: int, feature_lr: float = FEATURE_LR, position_lr: float = POSITION_LR
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-    """`steps` Adam steps on (points, features) of an embedding, normalised units, towards the lowest D_e of
-    decoder(points, features) against `target` (N, 3). Returns the refined (points, features), detached.
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """`steps` Adam steps on (points, features) of an embedding, normalised float32 arrays, towards the lowest D_e
+    of network.decode(points, features) against `target` (N, 3). Returns the refined (points, features), new arrays.
 
-    Deterministic: neighbours from KD-trees, fixed step sizes, gathers with a fixed-order backward (CPU) or
-    torch's deterministic kernels (GPU).
+    Deterministic whatever the thread count: the decode and its gradient on fixed groups with one BLAS thread,
+    neighbours from KD-trees, fixed step sizes, sums in a fixed order.
     """
     if steps < 0:
         raise ValueError(f"refinement steps must be >= 0, got {steps}")
+    points = np.array(points, dtype=np.float32)
+    features = np.array(features, dtype=np.float32)
     if steps == 0 or len(points) == 0 or len(target) == 0:
         return points, features
-    target = target.detach()
-    target_tree = KDTree(np.ascontiguousarray(target.cpu().numpy()))
-    shift = torch.zeros_like(points, requires_grad=True)
-    refined = features.detach().clone().requires_grad_(True)
-    optimiser = _Adam([(refined, feature_lr), (shift, position_lr)])
-    with _frozen(decoder), _deterministic(points.device), torch.enable_grad():
-        for _ in range(steps):
-            output, _ = decoder(points + shift, refined)
-            mean_distance_loss(target, output, target_tree).backward()
-            optimiser.step()
-    return (points + shift).detach(), refined.detach()
+    target = np.ascontiguousarray(target, dtype=np.float32)
+    target_tree = KDTree(target)
+    shift = np.zeros_like(points)
+    shifts, refined = _Adam(shift, position_lr), _Adam(features, feature_lr)
+    for _ in range(steps):
+        output, trace = network.decode_traced(points + shift, features)
+        point_gradient, feature_gradient = network.decode_gradient(
+            trace, distance_gradient(target, target_tree, output))
+        del output, trace
+        refined.step(feature_gradient)
+        shifts.step(point_gradient)
+    return points + shift, features
