@@ -183,7 +183,7 @@ def test_mean_distance_loss_is_the_d_e_metric():
 
 def test_loss_gradient_is_bitwise_reproducible_with_many_shared_neighbours():
     # 100,000 reference points share 1,000 output points as nearest neighbours: the gradient sums up to hundreds of
-    # terms per output point, which must come in the same order every time (refined files depend on it)
+    # terms per output point, which must come in the same order every time (training runs depend on it)
     rng = np.random.default_rng(6)
     reference = torch.from_numpy(rng.random((100_000, 3), dtype=np.float32))
     output = torch.from_numpy(rng.random((1_000, 3), dtype=np.float32)).requires_grad_(True)

@@ -1,10 +1,11 @@
-"""The autoencoder's forward pass on numpy: what compress, decompress and eval run on the CPU, without torch.
+"""The autoencoder's forward pass on numpy: what compress, decompress and eval run on the CPU, without torch; and
+the decoder's backward pass, which encode-time refinement follows (`model/refine.py`).
 
 It reads the weights file's tensors under the names of the torch modules' state dict (`autoencoder.Autoencoder`,
-which trains, refines embeddings and runs on GPUs) and computes the same layers in eval mode: batch norms with
-their running statistics, folded into the linear layer before them. A file with a tensor this forward does not read,
-one it lacks or one of another shape is refused, so the two forwards cannot drift apart silently; the tests compare
-their outputs for every shipped model (tests/test_inference.py). Matrix products run on one BLAS thread
+which trains and runs on GPUs) and computes the same layers in eval mode: batch norms with their running statistics,
+folded into the linear layer before them. A file with a tensor this forward does not read, one it lacks or one of
+another shape is refused, so the two forwards cannot drift apart silently; the tests compare their outputs for
+every shipped model (tests/test_inference.py). Matrix products run on one BLAS thread
 (`one_blas_thread`) and the compiled kernels over independent rows: the output does not depend on the thread count.
 """
 
@@ -243,7 +244,7 @@ class InferenceNetwork:
 
     def decode_traced(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, list]:
         """`decode`'s output (the same groups, the same values) and what `decode_gradient` needs of the pass: per
-        group and deconvolution, where the LeakyReLUs' inputs are <= 0 (bool) and the offsets' tanh values."""
+        group and deconvolution, where the LeakyReLUs' inputs are > 0 (bool) and the offsets' tanh values."""
         points = np.ascontiguousarray(points, dtype=np.float32)
         features = np.ascontiguousarray(features, dtype=np.float32)
         group, children = self._decode_groups()
@@ -288,7 +289,7 @@ class InferenceNetwork:
             offsets = _affine(hidden[:, :block.hidden], block.offset)
             np.tanh(offsets, out=offsets)
             features = _affine_leaky_relu(hidden[:, block.hidden:], block.feature, self.slope)
-            kept.append((hidden <= 0, offsets, features <= 0))
+            kept.append((hidden > 0, offsets, features > 0))
             children = offsets * self.offset_scale
             children = children.reshape(n, block.factor, 3)
             children += points[:, None, :]
@@ -304,20 +305,27 @@ class InferenceNetwork:
         """`decode_gradient` on a group of embedding points, written into the two gradient arrays."""
         grad_points = output_gradient  # the output is the last level's points plus a function of its features
         grad_features = output_gradient @ np.ascontiguousarray(self.refine[0].T)
-        for block, (hidden_off, offsets, children_off) in zip(reversed(self.decoder), reversed(kept)):
+        for block, (hidden_on, offsets, children_on) in zip(reversed(self.decoder), reversed(kept)):
             n = len(offsets)
             grad_children = grad_features.reshape(n, -1)
-            np.multiply(grad_children, self.slope, out=grad_children, where=children_off.reshape(n, -1))
+            grad_children *= self._leaky_slopes(children_on.reshape(n, -1))
             grad_offsets = grad_points.reshape(n, -1) * self.offset_scale
             grad_offsets *= 1 - offsets * offsets  # tanh'
             grad_hidden = np.empty((n, 2 * block.hidden), dtype=np.float32)
             np.matmul(grad_offsets, block.offset[0].T, out=grad_hidden[:, :block.hidden])
             np.matmul(grad_children, block.feature[0].T, out=grad_hidden[:, block.hidden:])
-            np.multiply(grad_hidden, self.slope, out=grad_hidden, where=hidden_off)
+            grad_hidden *= self._leaky_slopes(hidden_on)
             grad_features = grad_hidden @ block.first[0].T
             grad_points = grad_points.reshape(n, block.factor, 3).sum(axis=1)
         point_gradient[:] = grad_points
         feature_gradient[:] = grad_features
+
+    def _leaky_slopes(self, positive: np.ndarray) -> np.ndarray:
+        """LeakyReLU's derivative where its input was > 0 (`positive`) or not: 1 or the slope (float32; the
+        arithmetic on the bools' bytes is ~5x faster than numpy's where)."""
+        slopes = positive.view(np.uint8) * (np.float32(1) - self.slope)
+        slopes += self.slope
+        return slopes
 
     def _deconv_forward(self, block: _Deconv, points: np.ndarray, features: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
