@@ -11,6 +11,7 @@ from mapsqueeze.model import (
 from mapsqueeze.errors import ModelError
 from mapsqueeze.geometry.grid import radius_neighbors
 from mapsqueeze.geometry.resample import resample_to_count
+from mapsqueeze.model.autoencoder import torch_refine
 from mapsqueeze.model.density import fit_density_law
 from mapsqueeze.model.kpconv import KPConv
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss
@@ -240,6 +241,11 @@ def test_refinement_takes_torch_adam_steps_on_d_e():
     np.testing.assert_allclose(refined.points, (points + shift).detach().numpy() * scale,
                                atol=0.05 * POSITION_LR * scale)
     assert np.abs(refined.features - embedding.features).max() > 0.2  # 3 steps of ~0.1
+    # the torch path of another device (`--device cuda`), here on the CPU: the same steps as torch.optim.Adam's
+    torch_points, torch_features = torch_refine(model.network, tile / np.float32(scale), embedding.points / scale,
+                                                embedding.features.copy(), 3)
+    np.testing.assert_allclose(torch_features, features.detach().numpy(), atol=1e-5)
+    np.testing.assert_allclose(torch_points, (points + shift).detach().numpy(), atol=1e-6)
 
 
 def test_distance_gradient_is_that_of_the_mean_distance_loss():

@@ -1,4 +1,4 @@
-"""The DEPOCO autoencoder (paper Fig. 2) on torch: training, passes on a GPU."""
+"""The DEPOCO autoencoder (paper Fig. 2) on torch: training, passes and encode-time refinement on a GPU."""
 
 from __future__ import annotations
 
@@ -89,3 +89,15 @@ def torch_decode(network: Autoencoder, points: np.ndarray, features: np.ndarray)
     with one_torch_thread():
         output, _ = network.decoder(torch.from_numpy(points).to(device), torch.from_numpy(features).to(device))
     return _to_numpy(output)[0]
+
+
+def torch_refine(network: Autoencoder, target: np.ndarray, points: np.ndarray, features: np.ndarray,
+                 steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """`refinetorch.refine_embedding_torch` with the network's decoder on its device; numpy arrays in and out,
+    normalised."""
+    from mapsqueeze.model.refinetorch import refine_embedding_torch
+
+    device = next(network.parameters()).device
+    tensors = (torch.from_numpy(a).to(device) for a in (target, points, features))
+    with one_torch_thread():
+        return _to_numpy(*refine_embedding_torch(network.decoder, *tensors, steps))

@@ -23,8 +23,8 @@ class Embedding:
 class CompressionModel:
     """A trained autoencoder with a numpy API in tile-local metres.
 
-    On the CPU, encode, refine and decode run `InferenceNetwork` (numpy, no torch); encode and decode on another
-    device (e.g. "cuda") run the torch network built from the same tensors (`network`, made on first use).
+    On the CPU, encode, refine and decode run `InferenceNetwork` (numpy, no torch); encode, refine and decode on
+    another device (e.g. "cuda") run the torch network built from the same tensors (`network`, made on first use).
     Pickles without the torch network, so Dask workers that only encode and decode never import torch.
     """
 
@@ -84,13 +84,18 @@ class CompressionModel:
     def refine(self, points_local: np.ndarray, embedding: Embedding, steps: int) -> Embedding:
         """The embedding of these tile-local points after `steps` steps of encode-time refinement towards a lower
         D_e of the decoder's output against all of them (not only the encoder's max_input_points;
-        `refine.refine_embedding`: same format, ~0.4 s a step for a 40 m tile on one core). On the numpy network
-        on the CPU whatever the device, like the decoder that defines the attribute field (`on_cpu`)."""
-        from mapsqueeze.model.refine import refine_embedding
-
+        `refine.refine_embedding`: same format, ~0.4 s a step for a 40 m tile on one core). On another device the
+        same steps through torch's autograd there (`autoencoder.torch_refine`), which gives the same rate points
+        within float32 rounding, not the same bytes."""
         points, features = self._normalised_embedding(embedding.points, embedding.features)
         target = np.asarray(points_local, dtype=np.float32) / self._scale  # every point
-        return self._embedding(*refine_embedding(self.inference, target, points, features, steps))
+        if self.device == "cpu":
+            from mapsqueeze.model.refine import refine_embedding
+
+            return self._embedding(*refine_embedding(self.inference, target, points, features, steps))
+        from mapsqueeze.model.autoencoder import torch_refine
+
+        return self._embedding(*torch_refine(self.network, target, points, features, steps))
 
     def decode(self, points: np.ndarray, features: np.ndarray, n_points: int | None = None) -> np.ndarray:
         """Embedding -> dense cloud (K,3) float32 tile-local metres.
