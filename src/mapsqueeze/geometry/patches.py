@@ -45,14 +45,14 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     n_patches = len(points) // patch
     offsets = np.zeros(len(options) * n_patches + 1, dtype=np.int64)
     seen = np.zeros(int(np.prod(shape)), dtype=np.uint8)  # 1: in the list being made (cleared after it)
-    scratch = np.empty((patch * int(1 + copies.max(initial=0)), 3), dtype=np.float32)  # one patch's points
     base = np.array([next((j for j in range(k) if strengths[j] == strengths[k] and copies[j] == 0), -1)
                      if copies[k] else -1 for k in range(len(options))], dtype=np.int64)
     most = len(points) * int(np.sum(1 + copies))  # one cell per reworked point
-    for size in (min(most, most // CELLS_RESERVED_PART + len(scratch)), most):
+    for size in (min(most, most // CELLS_RESERVED_PART + patch * int(1 + copies.max(initial=0))), most):
         cells = np.empty(size, dtype=np.int32)
         n_cells = _patch_planes_kernel(points, patch, strengths, copies, radii, True, box_low, box, GOLDEN_ANGLE,
-                                       GOLDEN_FRACTION, scratch, offsets[1:], True, np.asarray(frame_m, dtype=np.float64),
+                                       GOLDEN_FRACTION, np.empty((0, 3), dtype=np.float32), offsets[1:], True,
+                                       np.asarray(frame_m, dtype=np.float64),
                                        np.asarray(voxel_m, dtype=np.float64), np.asarray(low, dtype=np.int64),
                                        np.asarray(shape, dtype=np.int64), seen, cells, base)
         if n_cells >= 0:
@@ -153,26 +153,6 @@ def _store_inside(out, kept, x, y, z, low, box):
 
 
 @compiled
-def _append_cells(rows, count, frame, voxel, grid_low, grid_shape, seen, cells, kept):
-    """The grid cells of the float32 points rows[:count] (voxel floor((p + frame) / voxel) from grid_low) that the
-    list being made lacks, appended to `cells` at `kept` (seen[cell] == 1: already in, then set); the next free
-    position."""
-    first = kept
-    for i in range(count):  # no branch: vectorised
-        x = np.int64(np.floor((np.float64(rows[i, 0]) + frame[0]) / voxel[0])) - grid_low[0]
-        y = np.int64(np.floor((np.float64(rows[i, 1]) + frame[1]) / voxel[1])) - grid_low[1]
-        z = np.int64(np.floor((np.float64(rows[i, 2]) + frame[2]) / voxel[2])) - grid_low[2]
-        cells[first + i] = (x * grid_shape[1] + y) * grid_shape[2] + z
-    for i in range(first, first + count):
-        cell = cells[i]
-        if seen[cell] == 0:
-            seen[cell] = 1
-            cells[kept] = cell
-            kept += 1
-    return kept
-
-
-@compiled
 def _fit_planes(points, patch):
     """(n_patches, 12) float64: each patch's plane, its centroid, unit normal (`_smallest_eigenvector`) and the
     two tangents of `surface._tangents`."""
@@ -219,15 +199,17 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
     """`_rework`'s kernel: each patch's plane (centroid, normal, tangents) fitted once, then the patches reworked
     option after option; ends[k n_patches + i]: the row after patch i under option k. Per patch, every patch has
     the same disk samples: those of its first patch are kept and reused (no sine or cosine for the others).
-    to_cells (`patch_option_cells`): `out` holds one patch's points at a time, whose distinct voxel cells are
-    appended to `cells` (`_append_cells`; seen: 0 per grid cell, a work array), and ends[l] is the end of list
-    l's cells; the points of a patch under an option with base[option] >= 0 are those of option base[option] (the
-    same strength, no extra points), whose cells it copies, followed by its extra points. Returns the rows stored,
-    or the cells (-1, `seen` clear, when `cells` lacks room for a list and one patch's points)."""
+    to_cells (`patch_option_cells`; `out` unused): each point's voxel cell is appended to `cells` as the point is
+    made when it lies inside the box, unless the list being made has it (seen: 0 per grid cell, a work array), and
+    ends[l] is the end of list l's cells; the points of a patch under an option with base[option] >= 0 are those
+    of option base[option] (the same strength, no extra points), whose cells it copies, followed by its extra
+    points. Returns the rows stored, or the cells (-1, `seen` clear, when `cells` lacks room for a list and one
+    patch's points)."""
     n_patches = points.shape[0] // patch
     planes = _fit_planes(points, patch)
     disk = np.empty((patch * max(copies.max(), 0) if per_patch else 0, 2))  # per patch: every patch's samples
     kept = n_cells = listed = 0
+    per_list = patch * (1 + max(copies.max(), 0))  # the most cells one patch adds to a list
     for option in range(strengths.shape[0]):
         strength, n_copies, radius_m = strengths[option], copies[option], radii[option]
         for index in range(n_patches):
@@ -245,7 +227,7 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
                     source = base[option] * n_patches + index
                     first_cell = ends[source - 1] if source > 0 else 0
                     n_copied = ends[source] - first_cell
-                if n_cells + n_copied + out.shape[0] > cells.shape[0]:
+                if n_cells + n_copied + per_list > cells.shape[0]:
                     return -1  # `cells` too short; `seen` is clear
                 if copied:
                     for j in range(first_cell, ends[source]):
@@ -254,11 +236,41 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
                         n_cells += 1
             mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
             fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
+            if to_cells:  # a loop of its own: the cells made after `_store_inside` in the loop below run 2-4x slower
+                for i in range(start, start + patch):
+                    offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
+                    px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
+                    if not copied:
+                        x, y, z = np.float32(px), np.float32(py), np.float32(pz)
+                        if _in_box(x, y, z, low, box):
+                            cell = _cell(x, y, z, frame, voxel, grid_low, grid_shape)
+                            if seen[cell] == 0:
+                                seen[cell] = 1
+                                cells[n_cells] = cell
+                                n_cells += 1
+                    for j in range(n_copies):
+                        sample = (i - first) * n_copies + j
+                        if reuse:
+                            u, v = disk[sample, 0], disk[sample, 1]
+                        else:
+                            u, v = _disk_sample(sample, radius_m, golden_angle, golden_fraction)
+                            disk[sample, 0], disk[sample, 1] = u, v
+                        x, y, z = (np.float32(px + u * fx + v * sx), np.float32(py + u * fy + v * sy),
+                                   np.float32(pz + u * fz + v * sz))
+                        if _in_box(x, y, z, low, box):
+                            cell = _cell(x, y, z, frame, voxel, grid_low, grid_shape)
+                            if seen[cell] == 0:
+                                seen[cell] = 1
+                                cells[n_cells] = cell
+                                n_cells += 1
+                ends[entry] = n_cells
+                for j in range(listed, n_cells):
+                    seen[cells[j]] = 0
+                continue
             for i in range(start, start + patch):
                 offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
                 px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
-                if not copied:
-                    kept = _store_inside(out, kept, px, py, pz, low, box)
+                kept = _store_inside(out, kept, px, py, pz, low, box)
                 for j in range(n_copies):
                     sample = (i - first) * n_copies + j
                     if reuse:
@@ -269,13 +281,7 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
                             disk[sample, 0], disk[sample, 1] = u, v
                     kept = _store_inside(out, kept, px + u * fx + v * sx, py + u * fy + v * sy,
                                          pz + u * fz + v * sz, low, box)
-            if to_cells:
-                n_cells = _append_cells(out, kept, frame, voxel, grid_low, grid_shape, seen, cells, n_cells)
-                ends[entry] = n_cells
-                for j in range(listed, n_cells):
-                    seen[cells[j]] = 0
-            else:
-                ends[entry] = kept
+            ends[entry] = kept
     return n_cells if to_cells else kept
 
 
@@ -295,7 +301,7 @@ def _in_box(x, y, z, low, box):
 
 @compiled
 def _cell(x, y, z, frame, voxel, grid_low, grid_shape):
-    """The grid cell of the float32 point (x, y, z) (as `_append_cells`)."""
+    """The grid cell of the float32 point (x, y, z): voxel floor((p + frame) / voxel) from grid_low."""
     cx = np.int64(np.floor((np.float64(x) + frame[0]) / voxel[0])) - grid_low[0]
     cy = np.int64(np.floor((np.float64(y) + frame[1]) / voxel[1])) - grid_low[1]
     cz = np.int64(np.floor((np.float64(z) + frame[2]) / voxel[2])) - grid_low[2]
