@@ -3,8 +3,10 @@ network's embedding, raw points or an octree; `codec.modes`), pack."""
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
+import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -25,7 +27,7 @@ from mapsqueeze.codec.container import (
 )
 from mapsqueeze.codec.embedding import DEFAULT_FEATURE_STEP_STD, Precision
 from mapsqueeze.codec.entropy import ByteWriter
-from mapsqueeze.codec.executor import ProgressCallback, open_executor
+from mapsqueeze.codec.executor import ProgressCallback, default_workers, open_executor
 from mapsqueeze.codec.header import DefaultCount, Header
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
@@ -102,12 +104,15 @@ def compress_map(
     """
     check_refine_steps(refine_steps)
     models, tile_size = _model_list(model)
+    kernels = _load_kernels_meanwhile(dask_scheduler)
     points = validate_points(points, name="map")
     attributes = validate_attributes(attributes, len(points), name="map")
     schema = _attribute_schema(_ranges(attributes), metadata, attribute_options)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
     tiles = tile_map(points, tile_size, origin=origin, shape=shape)
     coded = [spec.name for spec in schema.specs] if schema else []
+    if kernels:
+        kernels.join()
 
     def tile_points():
         return ((tile.index, points[tile.point_indices], {name: attributes[name][tile.point_indices] for name in coded})
@@ -142,6 +147,7 @@ def compress_chunks(
     """
     check_refine_steps(refine_steps)
     models, tile_size = _model_list(model)
+    kernels = _load_kernels_meanwhile(dask_scheduler)
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     ranges: dict[str, tuple[np.dtype, float, float]] = {}
     metadata = None
@@ -173,6 +179,8 @@ def compress_chunks(
         indices = sorted(counts)  # the order of tile_map: by (i, j, k)
         for index in indices:  # refused before a tile that large is read back into memory
             check_tile_size(index, counts[index])
+        if kernels:
+            kernels.join()
 
         def tile_points():
             return ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3),
@@ -182,6 +190,38 @@ def compress_chunks(
 
         return _compress_tiles(tile_points, len(indices), n_points, origin, models, precision, position_step_m,
                                feature_step_std, progress, refine_steps, target, schema, workers, dask_scheduler)
+
+
+ENCODER_KERNEL_MODULES = ("mapsqueeze.geometry.grid", "mapsqueeze.model.influences", "mapsqueeze.geometry.nearest",
+                          "mapsqueeze.geometry.cells", "mapsqueeze.geometry.occupancy", "mapsqueeze.baselines.octree")
+"""The modules of the compiled kernels the tile jobs call (`codec.tilejobs`), imported where the jobs first need
+them (the command line starts without numba)."""
+
+
+def _load_kernels_meanwhile(dask_scheduler: str | None) -> threading.Thread | None:
+    """A started thread that imports ENCODER_KERNEL_MODULES and loads numba's registries (what the first kernel
+    call does: ~0.4-0.5 s in all) while this one reads and tiles the map, on a core the reading leaves idle; join it
+    before the tiles are encoded. It does nothing with a single core, or on a Dask cluster (whose workers import
+    their own; the coordinator would hold numba's memory for nothing): None then. What fails here is left to the
+    tile jobs, which import the same modules and report it."""
+    if dask_scheduler or default_workers() < 2:
+        return None
+    thread = threading.Thread(target=_load_kernels, name="mapsqueeze-kernels", daemon=True)
+    thread.start()
+    return thread
+
+
+def _load_kernels() -> None:
+    try:
+        for name in ENCODER_KERNEL_MODULES:
+            importlib.import_module(name)
+        from numba.core.compiler_lock import global_compiler_lock
+        from numba.core.registry import cpu_target
+
+        with global_compiler_lock:
+            cpu_target.target_context.refresh()
+    except Exception:  # noqa: BLE001 - the tile jobs import the same modules and report what fails
+        pass
 
 
 def _as_cloud(chunk) -> PointCloud:
