@@ -15,7 +15,7 @@ from mapsqueeze.model.autoencoder import torch_refine
 from mapsqueeze.model.density import fit_density_law
 from mapsqueeze.model.kpconv import KPConv
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss
-from mapsqueeze.model.refine import FEATURE_LR, POSITION_LR, distance_gradient, refine_embedding
+from mapsqueeze.model.refine import DEAD_ZONE_M, FEATURE_LR, POSITION_LR, distance_gradient, refine_embedding
 
 
 def street_patch(n=6000, seed=0, extent=20.0):
@@ -248,14 +248,37 @@ def test_refinement_takes_torch_adam_steps_on_d_e():
     np.testing.assert_allclose(torch_points, (points + shift).detach().numpy(), atol=1e-6)
 
 
-def test_distance_gradient_is_that_of_the_mean_distance_loss():
+@pytest.mark.parametrize("dead_zone", [0.0, 0.04])
+def test_distance_gradient_is_that_of_the_mean_distance_loss(dead_zone):
     rng = np.random.default_rng(4)
     target = rng.random((3000, 3), dtype=np.float32)
     output = torch.from_numpy(rng.random((700, 3), dtype=np.float32)).requires_grad_(True)
     output_np = output.detach().numpy().copy()
-    mean_distance_loss(torch.from_numpy(target), output).backward()
-    gradient = distance_gradient(target, KDTree(target), output_np)
+    mean_distance_loss(torch.from_numpy(target), output, dead_zone=dead_zone).backward()
+    gradient = distance_gradient(target, KDTree(target), output_np, dead_zone)
     np.testing.assert_allclose(gradient, output.grad.numpy(), rtol=1e-4, atol=1e-9)
+    if dead_zone:  # some distances inside the dead zone, some outside: the dead zone changed the gradient
+        plain = distance_gradient(target, KDTree(target), output_np)
+        assert 0.1 < np.mean(np.all(gradient == plain, axis=1)) < 0.9
+
+
+def test_refinement_of_e0_uses_its_dead_zone():
+    # compress --refine with e0: the steps of refine_embedding with DEAD_ZONE_M's dead zone, on numpy and in torch
+    model = load_model("e0")
+    tile = street_patch(n=6000, seed=3, extent=30.0)
+    embedding = model.encode(tile)
+    scale = np.float32(model.config.map_size)
+    args = (model.inference, tile / scale, embedding.points / scale, embedding.features, 2)
+    refined = model.refine(tile, embedding, steps=2)
+    points, features = refine_embedding(*args, dead_zone=DEAD_ZONE_M["e0"] / scale)
+    assert np.array_equal(refined.features, features) and np.array_equal(refined.points, points * scale)
+    assert not np.array_equal(refine_embedding(*args)[1], features)  # D_e itself takes other steps
+    unmoved = refine_embedding(*args, dead_zone=1.0)  # no distance outside the dead zone: no gradient
+    assert np.array_equal(unmoved[1], embedding.features) and np.array_equal(unmoved[0], args[2])
+    torch_points, torch_features = torch_refine(model.network, tile / scale, embedding.points / scale,
+                                                embedding.features.copy(), 2, DEAD_ZONE_M["e0"] / scale)
+    np.testing.assert_allclose(torch_features, features, atol=0.05 * FEATURE_LR)
+    np.testing.assert_allclose(torch_points, points, atol=0.05 * POSITION_LR)
 
 
 def test_density_law_fit_recovers_planar_dimension():

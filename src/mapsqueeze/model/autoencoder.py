@@ -92,12 +92,12 @@ def torch_decode(network: Autoencoder, points: np.ndarray, features: np.ndarray)
 
 
 def torch_refine(network: Autoencoder, target: np.ndarray, points: np.ndarray, features: np.ndarray,
-                 steps: int) -> tuple[np.ndarray, np.ndarray]:
+                 steps: int, dead_zone: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """`refinetorch.refine_embedding_torch` with the network's decoder on its device; numpy arrays in and out,
-    normalised."""
+    normalised (`dead_zone` too)."""
     from mapsqueeze.model.refinetorch import refine_embedding_torch
 
     device = next(network.parameters()).device
     tensors = (torch.from_numpy(a).to(device) for a in (target, points, features))
     with one_torch_thread():
-        return _to_numpy(*refine_embedding_torch(network.decoder, *tensors, steps))
+        return _to_numpy(*refine_embedding_torch(network.decoder, *tensors, steps, dead_zone))

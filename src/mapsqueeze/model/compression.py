@@ -89,13 +89,15 @@ class CompressionModel:
         within float32 rounding, not the same bytes."""
         points, features = self._normalised_embedding(embedding.points, embedding.features)
         target = np.asarray(points_local, dtype=np.float32) / self._scale  # every point
-        if self.device == "cpu":
-            from mapsqueeze.model.refine import refine_embedding
+        from mapsqueeze.model.refine import DEAD_ZONE_M, refine_embedding
 
-            return self._embedding(*refine_embedding(self.inference, target, points, features, steps))
+        dead_zone = DEAD_ZONE_M.get(self.model_id, 0.0) / float(self._scale)
+        if self.device == "cpu":
+            return self._embedding(*refine_embedding(self.inference, target, points, features, steps,
+                                                     dead_zone=dead_zone))
         from mapsqueeze.model.autoencoder import torch_refine
 
-        return self._embedding(*torch_refine(self.network, target, points, features, steps))
+        return self._embedding(*torch_refine(self.network, target, points, features, steps, dead_zone))
 
     def decode(self, points: np.ndarray, features: np.ndarray, n_points: int | None = None) -> np.ndarray:
         """Embedding -> dense cloud (K,3) float32 tile-local metres.

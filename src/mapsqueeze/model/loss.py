@@ -53,9 +53,14 @@ def depoco_loss(reference: torch.Tensor, output: torch.Tensor, intermediate: lis
     return loss, main
 
 
-def mean_distance_loss(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None = None):
+def mean_distance_loss(reference: torch.Tensor, output: torch.Tensor, reference_tree: KDTree | None = None,
+                       dead_zone: float = 0.0):
     """Symmetric mean nearest-neighbour distance (not squared): D_e (eq. 9) of `output` against `reference`, in the
-    units of the inputs, differentiable in both (KD-tree neighbours as in `chamfer_loss`)."""
+    units of the inputs, differentiable in both (KD-tree neighbours as in `chamfer_loss`). With a dead zone z > 0,
+    each distance d counts as max(d - z, 0) (encode-time refinement, `refine.DEAD_ZONE_M`)."""
     d_out, d_ref = _matched_squared_distances(reference, output, reference_tree)
     eps = 1e-12  # keeps the gradient of sqrt finite where a point sits exactly on its neighbour
-    return 0.5 * (d_out + eps).sqrt().mean() + 0.5 * (d_ref + eps).sqrt().mean()
+    d_out, d_ref = (d_out + eps).sqrt(), (d_ref + eps).sqrt()
+    if dead_zone > 0:
+        d_out, d_ref = torch.relu(d_out - dead_zone), torch.relu(d_ref - dead_zone)
+    return 0.5 * d_out.mean() + 0.5 * d_ref.mean()

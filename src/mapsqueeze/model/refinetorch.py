@@ -65,9 +65,11 @@ def _deterministic(device: torch.device):
 
 
 def refine_embedding_torch(decoder: torch.nn.Module, target: torch.Tensor, points: torch.Tensor,
-                           features: torch.Tensor, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+                           features: torch.Tensor, steps: int, dead_zone: float = 0.0
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
     """`steps` Adam steps on (points, features), normalised tensors on the decoder's device, towards the lowest D_e
-    of decoder(points, features) against `target` (N, 3). Returns the refined (points, features), detached."""
+    of decoder(points, features) against `target` (N, 3), its distances less `dead_zone` (`refine.distance_gradient`).
+    Returns the refined (points, features), detached."""
     if steps < 0:
         raise ValueError(f"refinement steps must be >= 0, got {steps}")
     if steps == 0 or len(points) == 0 or len(target) == 0:
@@ -80,6 +82,6 @@ def refine_embedding_torch(decoder: torch.nn.Module, target: torch.Tensor, point
     with _frozen(decoder), _deterministic(points.device), torch.enable_grad():
         for _ in range(steps):
             output, _ = decoder(points + shift, refined)
-            mean_distance_loss(target, output, target_tree).backward()
+            mean_distance_loss(target, output, target_tree, dead_zone).backward()
             optimiser.step()
     return (points + shift).detach(), refined.detach()
