@@ -32,12 +32,13 @@ POSITION_LR = 0.0005
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 DEAD_ZONE_M = {"e0": 0.075}
-"""Per shipped model (by name): the dead zone of its objective in metres (half the IoU voxel's 20 cm side, less
-2.5 cm). Measured on the real submaps and every third simulated test submap at 20 steps (BENCHMARKS.md,
-"Encode-time refinement"): for e0 the IoU difference to the classical front rises on 3 of 3 real and 8 of 10
-simulated rate points (Ouster e0 from -0.0045 to +0.0030, meeting issue 15's target) at the same D_e (ratio
-to the front: mean 0.589 -> 0.590 simulated, Ouster 0.548 -> 0.543); for e1..e3 it raised D_e (KITTI e2 0.771 ->
-0.826 x the front's), so they keep D_e itself."""
+"""Per shipped model (by name): the dead zone of its objective in metres (between the IoU voxel's half height, 5 cm,
+and half width, 10 cm). Measured at 20 steps on the real submaps and every third simulated test submap
+(BENCHMARKS.md, "Encode-time refinement"): for e0 the IoU difference to the classical front rises on KITTI
+(-0.061 -> -0.055), Ouster (-0.0045 -> +0.0064: issue 15's target met) and 6 of 10 simulated rate points (mean
++0.003 -> +0.006, the same ones met), the D_e ratio to the front about unchanged (simulated mean 0.588 -> 0.589;
+KITTI 0.621 -> 0.632);
+for e1..e3 it raised D_e (KITTI e2 0.771 -> 0.826 x the front's), so they keep D_e itself."""
 
 DISTANCE_EPS = 1e-12
 """Added to squared distances under the square root: keeps the gradient finite where a point sits on its
