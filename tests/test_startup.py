@@ -40,3 +40,31 @@ def test_compress_loads_no_scipy_linalg_and_kernels_with_a_blas_still_compile():
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["False", "6.0", "True"]
+
+
+def test_holding_scipy_linalg_back_from_numba_leaves_other_threads_importing_it():
+    """The compiled kernels' module is imported by a thread while compress reads the map: scipy.linalg is held back
+    from that thread's import of numba's array functions only, not from what the other threads import meanwhile."""
+    probe = (
+        "import sys, threading\n"
+        "started, done = threading.Event(), threading.Event()\n"
+        "class Pause:\n"  # stops the loading thread as it imports numba's array functions
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'numba.np.arraymath':\n"
+        "            started.set()\n"
+        "            done.wait(60)\n"
+        "        return None\n"
+        "sys.meta_path.insert(0, Pause())\n"
+        "loading = threading.Thread(target=__import__, args=('mapsqueeze.geometry.jit',))\n"
+        "loading.start()\n"
+        "assert started.wait(60)\n"
+        "try:\n"
+        "    import scipy.linalg\n"
+        "finally:\n"
+        "    done.set()\n"
+        "loading.join()\n"
+        "import numba.np.arraymath\n"
+        "print(scipy.linalg.__name__, numba.np.arraymath._HAVE_BLAS)")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["scipy.linalg", "True"]

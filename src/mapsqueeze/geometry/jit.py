@@ -15,22 +15,37 @@ import importlib.util
 import os
 import sys
 import tempfile
+import threading
 
 import numba
 
 
+class _HoldBack:
+    """A finder that refuses scipy.linalg to the thread that made it and to no other (`_load_array_functions`
+    runs in a thread while compress reads the map, `codec.compress._load_kernels_meanwhile`)."""
+
+    def __init__(self):
+        self.thread = threading.get_ident()
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "scipy.linalg" and threading.get_ident() == self.thread:
+            raise ModuleNotFoundError("scipy.linalg is held back while numba's array functions load", name=name)
+        return None
+
+
 def _load_array_functions() -> None:
-    """Import `numba.np.arraymath` with scipy.linalg held back, then set its import-time BLAS probe to whether
-    scipy is installed (what numba would have found): a kernel that needs a BLAS (np.dot, np.linalg, np.correlate
-    of floats) still imports scipy.linalg, as it is compiled (numba's `ensure_blas`). Nothing changes once either
-    module is loaded."""
+    """Import `numba.np.arraymath` with scipy.linalg held back from this thread (`_HoldBack`), then set its
+    import-time BLAS probe to whether scipy is installed (what numba would have found): a kernel that needs a BLAS
+    (np.dot, np.linalg, np.correlate of floats) still imports scipy.linalg, as it is compiled (numba's
+    `ensure_blas`). Nothing changes once either module is loaded."""
     if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
         return
-    sys.modules["scipy.linalg"] = None  # `import scipy.linalg...` raises ImportError
+    finder = _HoldBack()
+    sys.meta_path.insert(0, finder)
     try:
         import numba.np.arraymath
     finally:
-        del sys.modules["scipy.linalg"]
+        sys.meta_path.remove(finder)
     numba.np.arraymath._HAVE_BLAS = importlib.util.find_spec("scipy") is not None
 
 
