@@ -4,6 +4,7 @@ compress / decompress on the CPU without importing torch."""
 import pickle
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -202,3 +203,7 @@ def test_the_activation_gives_the_same_bits_with_and_without_the_compiled_kernel
     expected = np.where(expected > 0, expected, expected * np.float32(0.01))
     assert np.array_equal(compiled.view(np.uint32), blocks.view(np.uint32))
     assert np.array_equal(blocks.view(np.uint32), expected.view(np.uint32))
+    importing = x.copy()  # the module as another thread is importing it: in sys.modules, its kernel not yet defined
+    monkeypatch.setitem(sys.modules, "mapsqueeze.model.influences", types.ModuleType("mapsqueeze.model.influences"))
+    inference._bias_leaky_relu(importing, bias, np.float32(0.01))
+    assert np.array_equal(importing.view(np.uint32), expected.view(np.uint32))

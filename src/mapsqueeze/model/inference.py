@@ -98,10 +98,10 @@ def _bias_leaky_relu(x: np.ndarray, bias: np.ndarray, slope: np.float32) -> None
     else slope * x), in row blocks that stay in the CPU's cache between the three operations (and so does their
     temporary). Once the encoder's compiled kernels are loaded (compress; numba's start already paid), the same bits
     come from their one-pass kernel (`influences.bias_leaky_relu`, ~4x faster on the decoder's activations);
-    decompress and eval load no numba for it."""
-    compiled = sys.modules.get("mapsqueeze.model.influences")
-    if compiled is not None:
-        compiled.bias_leaky_relu(x, bias, slope)
+    decompress and eval load no numba for it (nor while another thread is still importing that module)."""
+    kernel = getattr(sys.modules.get("mapsqueeze.model.influences"), "bias_leaky_relu", None)
+    if kernel is not None:
+        kernel(x, bias, slope)
         return
     rows = max(1, LEAKY_BLOCK_ELEMENTS // max(1, x.shape[1]))
     scaled = np.empty((min(rows, len(x)), x.shape[1]), dtype=x.dtype)
