@@ -115,6 +115,22 @@ def test_patch_option_cells_are_the_distinct_voxels_of_the_reworked_points(monke
             assert len(set(listed.tolist())) == len(listed) and set(listed.tolist()) == set(linear[begin:end].tolist())
 
 
+
+def test_patch_option_cells_fit_when_nearly_every_reworked_point_has_a_voxel_of_its_own():
+    """One patch of points far apart on a plane, 5 mm voxels: every extra point but the first (disk sample 0 is
+    the point itself) lands in a voxel of its own; the last list (copied cells, then extra points) still fits."""
+    rng = np.random.default_rng(0)
+    decoded = np.c_[rng.uniform(0.2, 1.8, (8, 2)), np.full(8, 0.5)].astype(np.float32)
+    voxel, low, shape = np.full(3, 0.005), np.zeros(3, dtype=np.int64), np.array([402, 402, 202])
+    points, ends = patch_options(decoded, 8, PATCH_OPTIONS, np.array([2.0, 2.0, 1.0]))
+    cells, offsets = patch_option_cells(decoded, 8, PATCH_OPTIONS, np.array([2.0, 2.0, 1.0]), np.zeros(3), voxel,
+                                        low, shape)
+    voxels = np.floor(points.astype(np.float64) / voxel).astype(np.int64)
+    linear = (voxels[:, 0] * shape[1] + voxels[:, 1]) * shape[2] + voxels[:, 2]
+    for entry, (begin, end) in enumerate(zip(np.concatenate([[0], ends[:-1]]), ends)):
+        assert sorted(cells[offsets[entry]:offsets[entry + 1]].tolist()) == sorted(set(linear[begin:end].tolist()))
+    assert len(cells) > 0.9 * len(points)
+
 def test_the_search_renumbers_the_listed_cells_in_grid_order():
     """The search's arrays span the cells the lists name, numbered in grid order (across blocks of cells and a last
     partial block), each with the original's bit."""

@@ -203,13 +203,12 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
     made when it lies inside the box, unless the list being made has it (seen: 0 per grid cell, a work array), and
     ends[l] is the end of list l's cells; the points of a patch under an option with base[option] >= 0 are those
     of option base[option] (the same strength, no extra points), whose cells it copies, followed by its extra
-    points. Returns the rows stored, or the cells (-1, `seen` clear, when `cells` lacks room for a list and one
-    patch's points)."""
+    points. Returns the rows stored, or the cells (-1, `seen` clear, when `cells` lacks room for the most cells
+    of a list: one per point of its patch and extra point)."""
     n_patches = points.shape[0] // patch
     planes = _fit_planes(points, patch)
     disk = np.empty((patch * max(copies.max(), 0) if per_patch else 0, 2))  # per patch: every patch's samples
     kept = n_cells = listed = 0
-    per_list = patch * (1 + max(copies.max(), 0))  # the most cells one patch adds to a list
     for option in range(strengths.shape[0]):
         strength, n_copies, radius_m = strengths[option], copies[option], radii[option]
         for index in range(n_patches):
@@ -222,15 +221,12 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
             if to_cells:
                 kept = 0
                 listed = n_cells
-                first_cell = n_copied = 0
-                if copied:
-                    source = base[option] * n_patches + index
-                    first_cell = ends[source - 1] if source > 0 else 0
-                    n_copied = ends[source] - first_cell
-                if n_cells + n_copied + per_list > cells.shape[0]:
+                # the most cells of this list: its patch's points (or the copied cells of them) and extra points
+                if n_cells + patch * (1 + n_copies) > cells.shape[0]:
                     return -1  # `cells` too short; `seen` is clear
                 if copied:
-                    for j in range(first_cell, ends[source]):
+                    source = base[option] * n_patches + index
+                    for j in range(ends[source - 1] if source > 0 else 0, ends[source]):
                         seen[cells[j]] = 1
                         cells[n_cells] = cells[j]
                         n_cells += 1
