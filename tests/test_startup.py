@@ -68,3 +68,17 @@ def test_holding_scipy_linalg_back_from_numba_leaves_other_threads_importing_it(
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["scipy.linalg", "True"]
+
+
+def test_compress_loads_the_kernels_in_a_thread_once():
+    """A thread imports the encoder's kernel modules (not scipy.linalg) while compress reads the map: not for a Dask
+    cluster, nor once they are loaded."""
+    probe = ("import sys\nimport mapsqueeze.codec.compress as compress\ncompress.default_workers = lambda: 2\n"
+             "assert compress._load_kernels_meanwhile('tcp://127.0.0.1:8786') is None\n"
+             "assert not set(compress.ENCODER_KERNEL_MODULES) & set(sys.modules)\n"
+             "compress._load_kernels_meanwhile(None).join()\n"
+             "assert set(compress.ENCODER_KERNEL_MODULES) <= set(sys.modules)\n"
+             "print(compress._load_kernels_meanwhile(None), 'scipy.linalg' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["None", "False"]

@@ -201,10 +201,11 @@ them (the command line starts without numba)."""
 def _load_kernels_meanwhile(dask_scheduler: str | None) -> threading.Thread | None:
     """A started thread that imports ENCODER_KERNEL_MODULES and loads numba's registries (what the first kernel
     call does: ~0.4-0.5 s in all) while this one reads and tiles the map, on a core the reading leaves idle; join it
-    before the tiles are encoded. It does nothing with a single core, or on a Dask cluster (whose workers import
-    their own; the coordinator would hold numba's memory for nothing): None then. What fails here is left to the
-    tile jobs, which import the same modules and report it."""
-    if dask_scheduler or default_workers() < 2:
+    before the tiles are encoded. It does nothing with a single core, on a Dask cluster (whose workers import
+    their own; the coordinator would hold numba's memory for nothing) or once the modules are loaded (a process
+    that compressed before): None then. What fails here is left to the tile jobs, which import the same modules and
+    report it."""
+    if dask_scheduler or default_workers() < 2 or all(name in sys.modules for name in ENCODER_KERNEL_MODULES):
         return None
     thread = threading.Thread(target=_load_kernels, name="mapsqueeze-kernels", daemon=True)
     thread.start()
