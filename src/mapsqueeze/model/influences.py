@@ -12,7 +12,8 @@ def cpu_influences(queries: np.ndarray, source: np.ndarray, neighbors: np.ndarra
                    sigma: float, first: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
     """Influence max(0, 1 - |y - x - x_m| / sigma) of each neighbour y of queries x in [first, stop) on each kernel
     point x_m: (stop - first, M, K) float32 (written into `out` when given), 0 for shadow neighbours (index
-    len(source)). Arrays float32 / int64 or int32 (neighbours), C-contiguous; threads over query ranges (`run_over_ranges`)."""
+    len(source)). Arrays float32 / int64 or int32 (neighbours), C-contiguous; threads over query ranges
+    (`run_over_ranges`)."""
     if out is None:
         out = np.empty((stop - first, len(kernel_points), neighbors.shape[1]), dtype=np.float32)
     args = (queries, source, neighbors, kernel_points, np.float32(sigma), first)
