@@ -223,39 +223,36 @@ class InferenceNetwork:
     def decode(self, points: np.ndarray, features: np.ndarray) -> np.ndarray:
         """Embedding points (M, 3) and features (M, embedding_dim), normalised -> output points (M x prod(K_i), 3)
         float32 normalised, children in the order of their parents."""
+        return self._decode(points, features, None)
+
+    def decode_traced(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, list]:
+        """`decode`'s output (the same groups, the same values) and what `decode_gradient` needs of the pass: per
+        group and deconvolution, where the LeakyReLUs' inputs are > 0 (bool) and the offsets' tanh values."""
+        trace: list = [[] for _ in range(0, len(points), self._decode_groups()[0])]
+        return self._decode(points, features, trace), trace
+
+    def _decode(self, points: np.ndarray, features: np.ndarray, trace: list | None) -> np.ndarray:
+        """`decode`, each group's trace appended to trace[group] unless trace is None."""
         points = np.ascontiguousarray(points, dtype=np.float32)
         features = np.ascontiguousarray(features, dtype=np.float32)
         group, children = self._decode_groups()
         out = np.empty((len(points) * children, 3), dtype=np.float32)
         tasks = [partial(self._decode_group, points[start:start + group], features[start:start + group],
-                         out[start * children:(start + group) * children]) for start in range(0, len(points), group)]
+                         out[start * children:(start + group) * children], None if trace is None else trace[i])
+                 for i, start in enumerate(range(0, len(points), group))]
         with one_blas_thread():
             run_shared(tasks)  # the groups are independent: idle decoding threads may take some
         return out
 
-    def _decode_group(self, points: np.ndarray, features: np.ndarray, out: np.ndarray) -> None:
-        """The decoder on a group of embedding points, written into `out`."""
+    def _decode_group(self, points: np.ndarray, features: np.ndarray, out: np.ndarray, kept: list | None) -> None:
+        """The decoder on a group of embedding points, written into `out` (each deconvolution's trace appended to
+        `kept` unless it is None)."""
         for block in self.decoder:
-            points, features = self._deconv_forward(block, points, features)
+            points, features = self._deconv_forward(block, points, features, kept)
         np.matmul(features, self.refine[0], out=out)
         for axis in range(3):  # column by column: numpy's (K, 3) + (3,) runs a 3-long inner loop per row
             out[:, axis] += self.refine[1][axis]
         out += points
-
-    def decode_traced(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, list]:
-        """`decode`'s output (the same groups, the same values) and what `decode_gradient` needs of the pass: per
-        group and deconvolution, where the LeakyReLUs' inputs are > 0 (bool) and the offsets' tanh values."""
-        points = np.ascontiguousarray(points, dtype=np.float32)
-        features = np.ascontiguousarray(features, dtype=np.float32)
-        group, children = self._decode_groups()
-        out = np.empty((len(points) * children, 3), dtype=np.float32)
-        starts = range(0, len(points), group)
-        trace: list = [None] * len(starts)
-        tasks = [partial(self._traced_group, points[start:start + group], features[start:start + group],
-                         out[start * children:(start + group) * children], trace, i) for i, start in enumerate(starts)]
-        with one_blas_thread():
-            run_shared(tasks)
-        return out, trace
 
     def decode_gradient(self, trace: list, output_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The gradient of a function of the decoder's output with respect to the embedding: given the trace of
@@ -279,26 +276,6 @@ class InferenceNetwork:
         factors = self.config.upsampling_factors
         group = max(1, DECODE_GROUP_ROWS // int(np.prod(factors[:-1], dtype=np.int64)))
         return group, int(np.prod(factors, dtype=np.int64))
-
-    def _traced_group(self, points: np.ndarray, features: np.ndarray, out: np.ndarray, trace: list, index: int):
-        """`_decode_group` keeping the trace of each deconvolution (`decode_traced`)."""
-        kept = []
-        for block in self.decoder:
-            n = len(points)
-            hidden = _affine_leaky_relu(features, block.first, self.slope)
-            offsets = _affine(hidden[:, :block.hidden], block.offset)
-            np.tanh(offsets, out=offsets)
-            features = _affine_leaky_relu(hidden[:, block.hidden:], block.feature, self.slope)
-            kept.append((hidden > 0, offsets, features > 0))
-            children = offsets * self.offset_scale
-            children = children.reshape(n, block.factor, 3)
-            children += points[:, None, :]
-            points, features = children.reshape(n * block.factor, 3), features.reshape(n * block.factor, -1)
-        np.matmul(features, self.refine[0], out=out)
-        for axis in range(3):
-            out[:, axis] += self.refine[1][axis]
-        out += points
-        trace[index] = kept
 
     def _gradient_group(self, kept: list, output_gradient: np.ndarray, point_gradient: np.ndarray,
                         feature_gradient: np.ndarray) -> None:
@@ -327,15 +304,22 @@ class InferenceNetwork:
         slopes += self.slope
         return slopes
 
-    def _deconv_forward(self, block: _Deconv, points: np.ndarray, features: np.ndarray
+    def _deconv_forward(self, block: _Deconv, points: np.ndarray, features: np.ndarray, kept: list | None = None
                         ) -> tuple[np.ndarray, np.ndarray]:
-        """`deconv.AdaptiveDeconv.forward`: each point's `factor` children (points, features)."""
+        """`deconv.AdaptiveDeconv.forward`: each point's `factor` children (points, features); unless `kept` is
+        None, (hidden > 0, tanh offsets, children's features > 0) appended to it (`decode_traced`)."""
         n = len(points)
         hidden = _affine_leaky_relu(features, block.first, self.slope)
-        offsets = _affine(hidden[:, :block.hidden], block.offset)
-        np.tanh(offsets, out=offsets)
-        offsets *= self.offset_scale
+        tanh = _affine(hidden[:, :block.hidden], block.offset)
+        np.tanh(tanh, out=tanh)
+        if kept is None:
+            tanh *= self.offset_scale
+            offsets = tanh
+        else:
+            offsets = tanh * self.offset_scale
         offsets = offsets.reshape(n, block.factor, 3)
         offsets += points[:, None, :]
         children = _affine_leaky_relu(hidden[:, block.hidden:], block.feature, self.slope)
+        if kept is not None:
+            kept.append((hidden > 0, tanh, children > 0))
         return offsets.reshape(n * block.factor, 3), children.reshape(n * block.factor, -1)
