@@ -91,26 +91,72 @@ def test_unwritable_package_home_and_output_folder(tiny_model_dir, map_file, tmp
 
 # --- signals and leftovers of killed runs -----------------------------------------------------------------------
 
+TILE_JOB_MARKED_CLI = """
+import os, pathlib, threading
+from mapsqueeze.codec import compress, decompress
+for module, name in ((compress, "embed_job"), (compress, "candidates_job"), (decompress, "_decode_job")):
+    def marked(*args, job=getattr(module, name)):
+        mark = pathlib.Path(os.environ["TILE_JOB_MARK"])
+        temp = mark.with_name(f"{mark.name}.{threading.get_ident()}")
+        temp.write_text(threading.current_thread().name)
+        os.replace(temp, mark)
+        return job(*args)
+    setattr(module, name, marked)
+from mapsqueeze.cli import main
+main()
+"""
+"""`mapsqueeze ARGS` that writes the name of the thread running a tile job to $TILE_JOB_MARK as each job starts."""
+
+
 @pytest.mark.slow
-def test_sigterm_during_compress_removes_temporary_files(tiny_model_dir, tmp_path):
-    spill = tmp_path / "tmp"
+@pytest.mark.parametrize("command, signum, workers", [("compress", signal.SIGINT, 2), ("compress", signal.SIGTERM, 1),
+                                                      ("decompress", signal.SIGINT, 2)],
+                         ids=["compress-SIGINT-2-workers", "compress-SIGTERM-1-worker", "decompress-SIGINT-2-workers"])
+def test_a_signal_while_tiles_are_coded_gives_one_line_and_removes_temporary_files(tiny_model_dir, tmp_path, command,
+                                                                                   signum, workers):
+    """Ctrl-C or SIGTERM while tiles are coded (in the pool's threads with --workers 2): one error line, exit code
+    128 + the signal, the pool's threads ended, no spill folder, output or temporary file left, the input as it was."""
+    spill, work = tmp_path / "tmp", tmp_path / "work"
     spill.mkdir()
-    big = tmp_path / "big.ply"
-    write_points(big, np.concatenate([ground(30_000, 120.0, seed) for seed in range(2)]) + UTM)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "TMPDIR": str(spill)}
-    process = subprocess.Popen(
-        [sys.executable, "-c", "from mapsqueeze.cli import main; main()", "compress", str(big), "-o",
-         str(tmp_path / "big.msq"), "--model", str(tiny_model_dir), "--refine", "200"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    work.mkdir()
+    if command == "compress":  # 120 tiles of 500 points, each refined 200 steps: minutes to the end
+        source = work / "big.ply"
+        write_points(source, np.concatenate([ground(30_000, 120.0, seed) for seed in range(2)]) + UTM)
+        args = [source, "-o", work / "big.msq", "--model", tiny_model_dir, "--refine", 200]
+    else:  # 4,000,000 points decoded from 8 tiles, through spill files (a PCD is written from them)
+        source = work / "big.msq"
+        mapsqueeze.compress_file(map_file_of(work / "small.ply", ground(4000, 30.0)), source, str(tiny_model_dir))
+        (work / "small.ply").unlink()
+        args = [source, "-o", work / "big.pcd", "--model", tiny_model_dir, "--points", 4_000_000]
+    before = source.read_bytes()
+    mark = tmp_path / "mark"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "TMPDIR": str(spill), "TILE_JOB_MARK": str(mark)}
+    process = subprocess.Popen([sys.executable, "-c", TILE_JOB_MARKED_CLI, command, *map(str, args),
+                                "--workers", str(workers)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 300
-    while not list(spill.glob("mapsqueeze-tiles-*")) and time.monotonic() < deadline and process.poll() is None:
-        time.sleep(0.1)
-    assert list(spill.glob("mapsqueeze-tiles-*")), "compress did not start spilling tiles"
-    time.sleep(1.0)
-    process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 128 + signal.SIGTERM and err == "error: terminated\n"
-    assert list(spill.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["big.ply", "tmp"]
+    while not mark.exists() and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.05)
+    assert mark.exists() and process.poll() is None, f"no tile job started: {process.communicate()}"
+    if workers > 1:
+        assert mark.read_text().startswith("mapsqueeze-tile")
+    assert list(spill.glob("mapsqueeze-*")), "no spill folder while tiles are coded"
+    process.send_signal(signum)
+    try:
+        out, err = process.communicate(timeout=120)  # the pool's threads finish their running tiles and end
+    finally:
+        process.kill()
+    assert (process.returncode, out, err) == (128 + signum, "", f"error: {SIGNAL_WORDS[signum]}\n")
+    assert list(spill.iterdir()) == [] and [p.name for p in work.iterdir()] == [source.name]
+    assert source.read_bytes() == before
+
+
+SIGNAL_WORDS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}
+
+
+def map_file_of(path: Path, points: np.ndarray) -> Path:
+    write_points(path, points + UTM)
+    return path
 
 
 def dead_pid() -> int:

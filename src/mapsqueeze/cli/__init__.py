@@ -2,7 +2,9 @@
 
 Each module imported below adds its commands to the single typer app in `cli.app`; every command is a thin
 call into the library. Library errors (MapsqueezeError) and wrong flags become one `error: ...` line and exit
-code 2. SIGTERM is handled like Ctrl-C: temporary folders and partial outputs are removed, exit code 143.
+code 2. Ctrl-C (SIGINT) and SIGTERM unwind every `with` block (the tile threads finish their running tiles, temporary
+folders and partial outputs are removed) and end with one line, `error: interrupted` (exit code 130) or
+`error: terminated` (143).
 """
 
 import signal
@@ -22,16 +24,42 @@ def _fail(message: str, code: int = 2) -> None:
     sys.exit(code)
 
 
-class _Terminated(BaseException):
-    """Raised in the main thread on SIGTERM, so that every `with` block cleans up on the way out."""
+_SIGNAL_MESSAGES = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}
 
 
-def _on_sigterm(signum, frame) -> None:
-    raise _Terminated()
+class _Signalled(BaseException):
+    """Raised in the main thread on SIGINT or SIGTERM, so that every `with` block cleans up on the way out. Not a
+    KeyboardInterrupt: typer turns one into a silent exit code 130."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum, frame) -> None:
+    raise _Signalled(signum)
+
+
+def _install_signal_handlers() -> dict:
+    """Route SIGINT and SIGTERM to `_on_signal`, except a signal the parent set to be ignored (e.g. SIGINT of a
+    command started in the background); returns the handlers replaced."""
+    replaced = {}
+    for signum in _SIGNAL_MESSAGES:
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            replaced[signum] = signal.signal(signum, _on_signal)
+    return replaced
 
 
 def main() -> None:
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    replaced = _install_signal_handlers()
+    try:
+        _run()
+    finally:
+        for signum, handler in replaced.items():
+            signal.signal(signum, handler)
+
+
+def _run() -> None:
     try:
         result = app(standalone_mode=False)
     except MapsqueezeError as exc:
@@ -41,7 +69,7 @@ def main() -> None:
     except typer.TyperException as exc:  # usage errors: unknown option, bad value, missing argument
         _fail(f"{exc.format_message()} (see --help)", getattr(exc, "exit_code", 2))
     except (KeyboardInterrupt, typer.Abort):
-        _fail("interrupted", 130)
-    except _Terminated:
-        _fail("terminated", 128 + signal.SIGTERM)
+        _fail("interrupted", 128 + signal.SIGINT)
+    except _Signalled as exc:
+        _fail(_SIGNAL_MESSAGES[exc.signum], 128 + exc.signum)
     sys.exit(result if isinstance(result, int) else 0)
