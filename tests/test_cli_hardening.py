@@ -17,7 +17,7 @@ import pytest
 import mapsqueeze
 from mapsqueeze import api
 from mapsqueeze.errors import MapsqueezeError
-from mapsqueeze.io import read_points, write_points
+from mapsqueeze.io import DEFAULT_CHUNK_POINTS, read_points, write_points
 from mapsqueeze.metrics import EVALUATION_STAGES, evaluate
 
 UTM = np.array([500_000.123, 4_000_000.456, 50.0])
@@ -204,6 +204,20 @@ def test_points_at_the_origin_are_dropped_by_default(run_cli, tiny_model_dir, tm
     write_points(source, np.zeros((5, 3)))
     code, _, err = run_cli("compress", str(source), "-o", str(tmp_path / "c.msq"), "--model", str(tiny_model_dir))
     assert code == 2 and "all 5 points lie at (0, 0, 0)" in err and "--keep-zero-points" in err
+
+
+def test_non_finite_points_beyond_the_first_chunk_are_numbered_in_the_map(run_cli, tiny_model_dir, tmp_path):
+    """A map is read in chunks of DEFAULT_CHUNK_POINTS: the error names points of the map, not of the chunk."""
+    points = ground(DEFAULT_CHUNK_POINTS + 40_000) + UTM
+    bad = [DEFAULT_CHUNK_POINTS + 1000, DEFAULT_CHUNK_POINTS + 30_000]
+    points[bad, 2] = np.nan
+    source = tmp_path / "map.npy"
+    np.save(source, points)
+    code, out, err = run_cli("compress", str(source), "-o", str(tmp_path / "map.msq"), "--model", str(tiny_model_dir))
+    assert (code, out) == (2, "")
+    assert err == (f"error: {source}: 2 of points {DEFAULT_CHUNK_POINTS:,} to {len(points) - 1:,} (of {len(points):,}) "
+                   f"have NaN or infinite coordinates (the first: point {bad[0]:,}, counting from 0)\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npy"]
 
 
 def test_format_option_overrides_the_extension(run_cli, map_file, tiny_model_dir, tmp_path):

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 import mapsqueeze
 from mapsqueeze.codec import decompress as decompress_module
+from mapsqueeze.codec.compress import compress_chunks
 from mapsqueeze.codec.container import TileCoding, open_container
 from mapsqueeze.codec.embedding import (
     CellGrid,
@@ -455,9 +456,15 @@ def test_compress_file_reports_a_bad_chunk(model, tmp_path):
     points[7000] = np.nan
     source = tmp_path / "bad.npy"
     np.save(source, points)
-    with pytest.raises(InvalidPointCloudError, match="NaN"):
+    with pytest.raises(InvalidPointCloudError) as excinfo:
         mapsqueeze.compress_file(source, tmp_path / "bad.msq", model=model)
+    assert str(excinfo.value) == (f"{source}: 1 of {len(points):,} points has NaN or infinite coordinates (the first: "
+                                  "point 7,000, counting from 0)")
     assert not (tmp_path / "bad.msq").exists()
+    with pytest.raises(InvalidPointCloudError) as excinfo:  # the points of the map given in chunks
+        compress_chunks(lambda: [points[:5000], points[5000:]], model)
+    assert str(excinfo.value) == ("map: 1 of points 5,000 to 8,003 has NaN or infinite coordinates (the first: point "
+                                  "7,000, counting from 0; any later points are not checked)")
 
 
 def test_utm_coordinates_keep_codec_precision(model):

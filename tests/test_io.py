@@ -456,6 +456,56 @@ def test_iter_points_reports_bad_files(tmp_path):
         list(iter_points(tmp_path / "missing.ply"))
 
 
+def write_raw(path: Path, points: np.ndarray) -> None:
+    """Write points as they are (NaN included: write_points refuses them) as a binary PLY, .npy, .bin or .pcd.bin."""
+    if path.suffix == ".ply":
+        vertices = np.empty(len(points), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+        vertices["x"], vertices["y"], vertices["z"] = points.T
+        plyfile.PlyData([plyfile.PlyElement.describe(vertices, "vertex")]).write(str(path))
+    elif path.suffix == ".npy":
+        np.save(path, points)
+    else:
+        columns = 5 if path.name.endswith(".pcd.bin") else 4
+        np.column_stack([points, np.zeros((len(points), columns - 3))]).astype("<f4").tofile(path)
+
+
+@pytest.mark.parametrize("name", ["a.ply", "a.npy", "a.bin", "a.pcd.bin"])
+def test_non_finite_points_are_counted_and_numbered_in_the_file_not_the_chunk(tmp_path, name):
+    from mapsqueeze.io import iter_points
+
+    points = local_cloud(1000)
+    points[[250, 262, 940], [0, 2, 1]] = [np.nan, np.inf, np.nan]
+    write_raw(tmp_path / name, points)
+    path = tmp_path / name
+    with pytest.raises(InvalidPointCloudError) as whole:
+        read_points(path)
+    assert str(whole.value) == f"{path}: 3 of 1,000 points have NaN or infinite coordinates (the first: point 250, " \
+                               "counting from 0)"
+    with pytest.raises(InvalidPointCloudError) as chunked:
+        list(iter_points(path, chunk_points=100))
+    assert str(chunked.value) == (f"{path}: 2 of points 200 to 299 (of 1,000) have NaN or infinite coordinates (the "
+                                  "first: point 250, counting from 0; points from 300 on are not checked)")
+    points[[250, 262]] = 0.0
+    write_raw(path, points)
+    with pytest.raises(InvalidPointCloudError) as last:
+        list(iter_points(path, chunk_points=300))
+    assert str(last.value) == (f"{path}: 1 of points 900 to 999 (of 1,000) has NaN or infinite coordinates (the "
+                               "first: point 940, counting from 0)")
+
+
+def test_chunks_written_are_numbered_in_the_output(tmp_path):
+    from mapsqueeze.io import write_point_chunks
+
+    bad = local_cloud(50)
+    bad[7, 1] = np.nan
+    with pytest.raises(InvalidPointCloudError) as excinfo:
+        write_point_chunks(tmp_path / "out.las", lambda: [local_cloud(100), bad])
+    assert str(excinfo.value) == (f"points for {tmp_path / 'out.las'}: 1 of points 100 to 149 has NaN or infinite "
+                                  "coordinates (the first: point 107, counting from 0; any later points are not "
+                                  "checked)")
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("name", ["a.ply", "a.npy", "a.las", "a.laz", "a.pcd", "a.ply-ascii"])
 def test_write_point_chunks_matches_write_points(tmp_path, name):
     from mapsqueeze.io import write_point_chunks

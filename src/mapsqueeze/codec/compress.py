@@ -7,7 +7,7 @@ import importlib
 import os
 import sys
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,7 +151,7 @@ def compress_chunks(
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     ranges: dict[str, tuple[np.dtype, float, float]] = {}
     metadata = None
-    for chunk in map(_as_cloud, chunks()):
+    for chunk in _checked_clouds(chunks()):
         chunk_low, chunk_high = bounding_box(chunk.points)
         lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
         metadata = chunk.metadata if metadata is None else metadata
@@ -166,7 +166,7 @@ def compress_chunks(
     origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
     with work_dir("mapsqueeze-tiles-", spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
-        for chunk in map(_as_cloud, chunks()):
+        for chunk in _checked_clouds(chunks(), n_points):
             for tile in tile_map(chunk.points, tile_size, origin=origin, shape=shape):
                 with open(os.path.join(spill, _spill_name(tile.index)), "ab") as stream:
                     stream.write(chunk.points[tile.point_indices].tobytes())
@@ -225,12 +225,15 @@ def _load_kernels() -> None:
         pass
 
 
-def _as_cloud(chunk) -> PointCloud:
-    """A chunk as a PointCloud with validated points and attributes (bare (n, 3) arrays have none)."""
-    if not isinstance(chunk, PointCloud):
-        return PointCloud(validate_points(chunk, name="map"))
-    points = validate_points(chunk.points, name="map")
-    return PointCloud(points, validate_attributes(chunk.attributes, len(points), name="map"), chunk.metadata)
+def _checked_clouds(chunks: Iterable, total: int | None = None) -> Iterator[PointCloud]:
+    """The chunks of a map of `total` points (None: not yet known) as PointClouds with validated points and
+    attributes (bare (n, 3) arrays have none); errors number the points in the map."""
+    first = 0
+    for chunk in chunks:
+        cloud = chunk if isinstance(chunk, PointCloud) else PointCloud(chunk)
+        points = validate_points(cloud.points, "map", first, total)
+        first += len(points)
+        yield PointCloud(points, validate_attributes(cloud.attributes, len(points), name="map"), cloud.metadata)
 
 
 def _model_list(model) -> tuple[list, np.ndarray]:

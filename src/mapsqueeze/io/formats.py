@@ -178,9 +178,10 @@ def _as_cloud(chunk) -> PointCloud:
 def _checked_chunks(chunks: Callable[[], Iterable], path: Path) -> ChunkSource:
     """chunks() with every chunk validated (PointCloud or bare (n, 3) array) and its attributes in one order."""
     def source() -> Iterator[PointCloud]:
-        names = None
+        names, first = None, 0
         for chunk in map(_as_cloud, chunks()):
-            points = validate_points(chunk.points, name=f"points for {path}")
+            points = validate_points(chunk.points, f"points for {path}", first)
+            first += len(points)
             attributes = validate_attributes(chunk.attributes, len(points), name=f"points for {path}")
             if names is None:
                 names = {name: values.dtype for name, values in attributes.items()}

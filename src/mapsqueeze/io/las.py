@@ -98,12 +98,12 @@ def las_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
                 raise InvalidPointCloudError(f"{path}: the point cloud is empty")
             metadata = _metadata(reader.header, list(reader.header.evlrs or []))
             for part in reader.chunk_iterator(chunk_points):
-                seen += len(part)
                 if len(part):
                     points = validate_points(np.column_stack([np.asarray(part.x), np.asarray(part.y),
-                                                              np.asarray(part.z)]), name=str(path))
+                                                              np.asarray(part.z)]), str(path), seen, declared)
                     yield (PointCloud(points, _attributes(part, reader.header.point_format), metadata)
                            if attributes else PointCloud(points))
+                seen += len(part)
             if seen != declared:
                 raise PointCloudFormatError(
                     f"{path}: LAS header declares {declared:,} points, the file holds {seen:,}")

@@ -43,8 +43,8 @@ def ply_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
     names = names if attributes else []
     if len(data) == 0:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
-    for part in row_chunks(data, chunk_points):
-        points = validate_points(np.column_stack([part["x"], part["y"], part["z"]]), name=str(path))
+    for first, part in zip(range(0, len(data), chunk_points), row_chunks(data, chunk_points)):
+        points = validate_points(np.column_stack([part["x"], part["y"], part["z"]]), str(path), first, len(data))
         yield PointCloud(points, {name: part[name].copy() for name in names if name not in ("x", "y", "z")})
 
 
@@ -111,7 +111,7 @@ def write_ply_stream(path: Path, clouds: Iterable[np.ndarray], float32_certain: 
     n_points, error, start = 0, 0.0, None
     with atomic_output(path) as temp, open(temp, "w+b") as stream:
         for cloud in clouds:
-            points = validate_points(cloud, name=f"points for {path}")
+            points = validate_points(cloud, f"points for {path}", n_points)
             if start is None:
                 start = len(_binary_header(estimate(len(points)), _xyz_dtype(code)))
                 stream.seek(start)

@@ -66,13 +66,13 @@ def _table_chunks(path: Path, chunk_points: int, names: tuple[str, ...], label: 
     names = names if attributes else ()
     labels = _label_table(path, len(table)) if with_labels and attributes else None
     label_parts = row_chunks(labels, chunk_points) if labels is not None else None
-    for part in row_chunks(table, chunk_points):
+    for first, part in zip(range(0, len(table), chunk_points), row_chunks(table, chunk_points)):
         values = {name: part[:, 3 + column].copy() for column, name in enumerate(names)}
         if label_parts is not None:
             packed = next(label_parts)
             values["label"] = (packed & _LABEL_LIMIT).astype(np.uint16)
             values["instance"] = (packed >> 16).astype(np.uint16)
-        yield PointCloud(validate_points(part[:, :3], name=str(path)), values)
+        yield PointCloud(validate_points(part[:, :3], str(path), first, len(table)), values)
 
 
 def kitti_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
@@ -139,8 +139,8 @@ def npy_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
     if len(table) == 0:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
     columns = range(3, table.shape[1]) if attributes else ()
-    for part in row_chunks(table, chunk_points):
-        yield PointCloud(validate_points(part[:, :3], name=str(path)),
+    for first, part in zip(range(0, len(table), chunk_points), row_chunks(table, chunk_points)):
+        yield PointCloud(validate_points(part[:, :3], str(path), first, len(table)),
                          {f"column{column}": part[:, column].copy() for column in columns})
 
 
