@@ -458,8 +458,8 @@ def test_compress_file_reports_a_bad_chunk(model, tmp_path):
     np.save(source, points)
     with pytest.raises(InvalidPointCloudError) as excinfo:
         mapsqueeze.compress_file(source, tmp_path / "bad.msq", model=model)
-    assert str(excinfo.value) == (f"{source}: 1 of {len(points):,} points has NaN or infinite coordinates (the first: "
-                                  "point 7,000, counting from 0)")
+    assert str(excinfo.value) == (f"{source}: 1 of {len(points):,} points has NaN or infinite coordinates (the "
+                                  "first: point 7,000, counting from 0)")
     assert not (tmp_path / "bad.msq").exists()
     with pytest.raises(InvalidPointCloudError) as excinfo:  # the points of the map given in chunks
         compress_chunks(lambda: [points[:5000], points[5000:]], model)

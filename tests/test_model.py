@@ -15,7 +15,7 @@ from mapsqueeze.model.autoencoder import torch_refine
 from mapsqueeze.model.density import fit_density_law
 from mapsqueeze.model.kpconv import KPConv
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss
-from mapsqueeze.model.refine import DEAD_ZONE_M, FEATURE_LR, POSITION_LR, distance_gradient, refine_embedding
+from mapsqueeze.model.refine import FEATURE_LR, POSITION_LR, distance_gradient, refine_embedding
 
 
 def street_patch(n=6000, seed=0, extent=20.0):
@@ -263,22 +263,49 @@ def test_distance_gradient_is_that_of_the_mean_distance_loss(dead_zone):
 
 
 def test_refinement_of_e0_uses_its_dead_zone():
-    # compress --refine with e0: the steps of refine_embedding with DEAD_ZONE_M's dead zone, on numpy and in torch
+    # compress --refine with e0: the steps of refine_embedding with its config's dead zone, on numpy and in torch
     model = load_model("e0")
+    dead_zone_m = model.config.refine_dead_zone_m
+    assert dead_zone_m == 0.075 == ModelConfig.for_rate("e0").refine_dead_zone_m
     tile = street_patch(n=6000, seed=3, extent=30.0)
     embedding = model.encode(tile)
     scale = np.float32(model.config.map_size)
     args = (model.inference, tile / scale, embedding.points / scale, embedding.features, 2)
     refined = model.refine(tile, embedding, steps=2)
-    points, features = refine_embedding(*args, dead_zone=DEAD_ZONE_M["e0"] / scale)
+    points, features = refine_embedding(*args, dead_zone=dead_zone_m / scale)
     assert np.array_equal(refined.features, features) and np.array_equal(refined.points, points * scale)
     assert not np.array_equal(refine_embedding(*args)[1], features)  # D_e itself takes other steps
     unmoved = refine_embedding(*args, dead_zone=1.0)  # no distance outside the dead zone: no gradient
     assert np.array_equal(unmoved[1], embedding.features) and np.array_equal(unmoved[0], args[2])
     torch_points, torch_features = torch_refine(model.network, tile / scale, embedding.points / scale,
-                                                embedding.features.copy(), 2, DEAD_ZONE_M["e0"] / scale)
+                                                embedding.features.copy(), 2, dead_zone_m / scale)
     np.testing.assert_allclose(torch_features, features, atol=0.05 * FEATURE_LR)
     np.testing.assert_allclose(torch_points, points, atol=0.05 * POSITION_LR)
+
+
+def test_the_dead_zone_belongs_to_the_model_not_its_name(tmp_path):
+    """A copy of e0 under another name (a directory given to --model) refines as e0; a config without the key (e1's,
+    or one written before it existed) has none, and a bad one is refused."""
+    import json
+    import shutil
+
+    from mapsqueeze.model.shipped import CONFIG_FILE, SHIPPED_DIR
+
+    copy = tmp_path / "e0-copy"
+    shutil.copytree(SHIPPED_DIR / "e0", copy)
+    config = json.loads((copy / CONFIG_FILE).read_text())
+    (copy / CONFIG_FILE).write_text(json.dumps({**config, "name": "my-e0"}))
+    shipped, renamed = load_model("e0"), load_model(copy)
+    assert renamed.model_id == "my-e0" and renamed.config.refine_dead_zone_m == 0.075
+    tile = street_patch(n=6000, seed=3, extent=30.0)
+    embedding = shipped.encode(tile)
+    ours, theirs = shipped.refine(tile, embedding, steps=2), renamed.refine(tile, embedding, steps=2)
+    assert np.array_equal(ours.points, theirs.points) and np.array_equal(ours.features, theirs.features)
+    assert "refine_dead_zone_m" not in json.loads((SHIPPED_DIR / "e1" / CONFIG_FILE).read_text())
+    assert load_model("e1").config.refine_dead_zone_m == 0.0 == ModelConfig.for_rate("e1").refine_dead_zone_m
+    for bad in (-0.01, float("nan"), "5 cm"):
+        with pytest.raises(ModelError, match="refine_dead_zone_m"):
+            ModelConfig.for_rate("e0", refine_dead_zone_m=bad)
 
 
 def test_density_law_fit_recovers_planar_dimension():

@@ -84,14 +84,15 @@ class CompressionModel:
     def refine(self, points_local: np.ndarray, embedding: Embedding, steps: int) -> Embedding:
         """The embedding of these tile-local points after `steps` steps of encode-time refinement towards a lower
         D_e of the decoder's output against all of them (not only the encoder's max_input_points;
-        `refine.refine_embedding`: same format, ~0.4 s a step for a 40 m tile on one core). On another device the
-        same steps through torch's autograd there (`autoencoder.torch_refine`), which gives the same rate points
-        within float32 rounding, not the same bytes."""
+        `refine.refine_embedding` with the configuration's `refine_dead_zone_m`: same format, ~0.4 s a step for a
+        40 m tile on one core). On another device the same steps through torch's autograd there
+        (`autoencoder.torch_refine`), which gives the same rate points within float32 rounding, not the same
+        bytes."""
         points, features = self._normalised_embedding(embedding.points, embedding.features)
         target = np.asarray(points_local, dtype=np.float32) / self._scale  # every point
-        from mapsqueeze.model.refine import DEAD_ZONE_M, refine_embedding
+        from mapsqueeze.model.refine import refine_embedding
 
-        dead_zone = DEAD_ZONE_M.get(self.model_id, 0.0) / float(self._scale)
+        dead_zone = self.config.refine_dead_zone_m / float(self._scale)  # the model's own, whatever its name
         if self.device == "cpu":
             return self._embedding(*refine_embedding(self.inference, target, points, features, steps,
                                                      dead_zone=dead_zone))

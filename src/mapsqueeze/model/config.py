@@ -13,6 +13,15 @@ from mapsqueeze.errors import ModelError
 # r_s in metres of the paper's four rate points.
 RATE_SUBSAMPLING_M = {"e0": 3.0, "e1": 2.0, "e2": 1.2, "e3": 1.0}
 
+RATE_REFINE_DEAD_ZONE_M = {"e0": 0.075}
+"""`refine_dead_zone_m` of the rate points' configurations (`ModelConfig.for_rate`; the shipped e0's config.json
+holds the same), between the IoU voxel's half height, 5 cm, and half width, 10 cm. Measured at 20 steps on the real
+submaps and every third simulated test submap (BENCHMARKS.md, "Encode-time refinement"): for e0 the IoU difference
+to the classical front rises on KITTI (-0.061 -> -0.055), Ouster (-0.0045 -> +0.0064: issue 15's target met) and 6
+of 10 simulated rate points (mean +0.003 -> +0.006, the same ones met), the D_e ratio to the front about unchanged
+(simulated mean 0.588 -> 0.589; KITTI 0.621 -> 0.632); for e1..e3 it raised D_e (KITTI e2 0.771 -> 0.826 x the
+front's), so they keep D_e itself (0)."""
+
 
 @dataclass
 class ModelConfig:
@@ -40,6 +49,9 @@ class ModelConfig:
     max_input_points: int = 30000  # encoder input cap (deterministic random subset beyond it)
     leaky_relu_slope: float = 0.01
     batchnorm_momentum: float = 0.1
+    # Encode-time refinement (`model.refine`): distances within this dead zone (m) do not count in its objective
+    # (each distance d counts as max(d - dead zone, 0)); 0: D_e itself. Not used by training or decoding.
+    refine_dead_zone_m: float = 0.0
     extra: dict = field(default_factory=dict)  # provenance (e.g. imported from), training summary
 
     def __post_init__(self) -> None:
@@ -54,14 +66,20 @@ class ModelConfig:
             raise ModelError("encoder_dims, subsampling_factors and max_neighbors must have the same length")
         if self.subsampling_dist <= 0 or any(k < 1 for k in self.upsampling_factors):
             raise ModelError("subsampling_dist must be > 0 and every upsampling factor >= 1")
+        dead_zone = self.refine_dead_zone_m
+        if isinstance(dead_zone, bool) or not isinstance(dead_zone, (int, float)) or not 0 <= dead_zone < math.inf:
+            raise ModelError(f"refine_dead_zone_m must be a finite number >= 0 (metres), got {dead_zone!r}")
+        self.refine_dead_zone_m = float(dead_zone)
 
     @classmethod
     def for_rate(cls, rate: str, **overrides) -> "ModelConfig":
-        """The paper's configuration for rate point e0..e3 (r_s = 3.0/2.0/1.2/1.0 m)."""
+        """The paper's configuration for rate point e0..e3 (r_s = 3.0/2.0/1.2/1.0 m), with the rate point's
+        refinement dead zone (RATE_REFINE_DEAD_ZONE_M)."""
         if rate not in RATE_SUBSAMPLING_M:
             raise ModelError(f"unknown rate {rate!r}; choose one of {', '.join(RATE_SUBSAMPLING_M)}")
         r_s = RATE_SUBSAMPLING_M[rate]
-        defaults = {"name": rate, "subsampling_dist": r_s, "min_kernel_radius": 1.2 if r_s <= 1.0 else 1.5}
+        defaults = {"name": rate, "subsampling_dist": r_s, "min_kernel_radius": 1.2 if r_s <= 1.0 else 1.5,
+                    "refine_dead_zone_m": RATE_REFINE_DEAD_ZONE_M.get(rate, 0.0)}
         defaults.update(overrides)
         return cls(**defaults)
 

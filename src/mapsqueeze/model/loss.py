@@ -57,7 +57,7 @@ def mean_distance_loss(reference: torch.Tensor, output: torch.Tensor, reference_
                        dead_zone: float = 0.0):
     """Symmetric mean nearest-neighbour distance (not squared): D_e (eq. 9) of `output` against `reference`, in the
     units of the inputs, differentiable in both (KD-tree neighbours as in `chamfer_loss`). With a dead zone z > 0,
-    each distance d counts as max(d - z, 0) (encode-time refinement, `refine.DEAD_ZONE_M`)."""
+    each distance d counts as max(d - z, 0) (encode-time refinement, `ModelConfig.refine_dead_zone_m`)."""
     d_out, d_ref = _matched_squared_distances(reference, output, reference_tree)
     eps = 1e-12  # keeps the gradient of sqrt finite where a point sits exactly on its neighbour
     d_out, d_ref = (d_out + eps).sqrt(), (d_ref + eps).sqrt()

@@ -11,9 +11,9 @@ decode_traced`: the LeakyReLUs' signs as bools and the tanh values, about a tent
 neighbours both ways from KD-trees, the gradient of D_e with respect to the output, its backpropagation to the
 embedding (`InferenceNetwork.decode_gradient`), then torch's Adam update (default betas and eps) written out.
 
-For the models of DEAD_ZONE_M the objective leaves out the distances within a dead zone (each distance d counts as
-max(d - dead zone, 0)): points already that near their neighbour stop pulling, and the steps go to the ones that miss
-the IoU's voxels.
+A model whose configuration gives a dead zone (`ModelConfig.refine_dead_zone_m`: the shipped e0's 7.5 cm) leaves
+the distances within it out of the objective (each distance d counts as max(d - dead zone, 0)): points already that
+near their neighbour stop pulling, and the steps go to the ones that miss the IoU's voxels.
 """
 
 from __future__ import annotations
@@ -31,14 +31,6 @@ POSITION_LR = 0.0005
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
-DEAD_ZONE_M = {"e0": 0.075}
-"""Per shipped model (by name): the dead zone of its objective in metres (between the IoU voxel's half height, 5 cm,
-and half width, 10 cm). Measured at 20 steps on the real submaps and every third simulated test submap
-(BENCHMARKS.md, "Encode-time refinement"): for e0 the IoU difference to the classical front rises on KITTI
-(-0.061 -> -0.055), Ouster (-0.0045 -> +0.0064: issue 15's target met) and 6 of 10 simulated rate points (mean
-+0.003 -> +0.006, the same ones met), the D_e ratio to the front about unchanged (simulated mean 0.588 -> 0.589;
-KITTI 0.621 -> 0.632);
-for e1..e3 it raised D_e (KITTI e2 0.771 -> 0.826 x the front's), so they keep D_e itself."""
 
 DISTANCE_EPS = 1e-12
 """Added to squared distances under the square root: keeps the gradient finite where a point sits on its
