@@ -285,7 +285,7 @@ def test_refinement_of_e0_uses_its_dead_zone():
 
 def test_the_dead_zone_belongs_to_the_model_not_its_name(tmp_path):
     """A copy of e0 under another name (a directory given to --model) refines as e0; a config without the key (e1's,
-    or one written before it existed) has none, and a bad one is refused."""
+    or one written before it existed) has none, and a bad one is refused (as a bad patch-choice copy weight)."""
     import json
     import shutil
 
@@ -303,9 +303,10 @@ def test_the_dead_zone_belongs_to_the_model_not_its_name(tmp_path):
     assert np.array_equal(ours.points, theirs.points) and np.array_equal(ours.features, theirs.features)
     assert "refine_dead_zone_m" not in json.loads((SHIPPED_DIR / "e1" / CONFIG_FILE).read_text())
     assert load_model("e1").config.refine_dead_zone_m == 0.0 == ModelConfig.for_rate("e1").refine_dead_zone_m
-    for bad in (-0.01, float("nan"), "5 cm"):
-        with pytest.raises(ModelError, match="refine_dead_zone_m"):
-            ModelConfig.for_rate("e0", refine_dead_zone_m=bad)
+    for name in ("refine_dead_zone_m", "patch_choice_copy_weight"):
+        for bad in (-0.01, float("nan"), float("inf"), "5 cm", True):
+            with pytest.raises(ModelError, match=name):
+                ModelConfig.for_rate("e0", **{name: bad})
 
 
 def test_density_law_fit_recovers_planar_dimension():

@@ -10,7 +10,6 @@ from mapsqueeze.codec.container import TileRecord, open_container, serialise_con
 from mapsqueeze.codec.postfilter import (
     IOU_PER_LOG_RATE,
     OFF,
-    PATCH_CHOICE_COPY_WEIGHTS,
     PATCH_CHOICE_RATE_SWEEPS,
     PATCH,
     PATCH_CANDIDATES,
@@ -185,21 +184,24 @@ def test_the_copy_weight_puts_extra_points_on_the_original_and_the_bits_weight_s
     assert plain[2] - 0.01 < rated[2] <= plain[2]
 
 
-def test_the_search_weighs_d_e_and_bits_for_the_models_of_the_table_only():
+def test_the_search_weighs_d_e_and_bits_for_models_with_a_copy_weight_only():
+    from mapsqueeze.model import ModelConfig, load_model
+
+    weights = {rate: ModelConfig.for_rate(rate).patch_choice_copy_weight for rate in ("e0", "e1", "e2", "e3")}
+    assert weights == {"e0": 0.0, "e1": 0.0, "e2": 0.0, "e3": 2.0}
+    assert {name: load_model(name).config.patch_choice_copy_weight for name in weights} == weights  # the shipped
     original, decoded = mixed_patches()
     start = np.zeros(len(decoded) // 256, dtype=np.int64)
     plain = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF).choices
-    assert np.array_equal(search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, "e1", 3000).choices,
+    assert np.array_equal(search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, 0.0, 3000).choices,
                           plain)
-    assert set(PATCH_CHOICE_COPY_WEIGHTS) == {"e3"}
-    traded = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, "e3", 3000).choices
+    traded = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, weights["e3"], 3000).choices
     expected = patch_option_ious(original, decoded, 256, PATCH_OPTIONS, EXTENT, start, FRAME, IOU_VOXEL_M, 3,
-                                 PATCH_CHOICE_COPY_WEIGHTS["e3"], IOU_PER_LOG_RATE / (8 * 3000),
-                                 PATCH_CHOICE_RATE_SWEEPS)[0]
+                                 weights["e3"], IOU_PER_LOG_RATE / (8 * 3000), PATCH_CHOICE_RATE_SWEEPS)[0]
     assert np.array_equal(traded, expected) and not np.array_equal(traded, plain)
-    unrated = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, "e3").choices  # no payload size
+    unrated = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, OFF, weights["e3"]).choices  # no size
     assert np.array_equal(unrated, patch_option_ious(original, decoded, 256, PATCH_OPTIONS, EXTENT, start, FRAME,
-                                                     IOU_VOXEL_M, 3, PATCH_CHOICE_COPY_WEIGHTS["e3"])[0])
+                                                     IOU_VOXEL_M, 3, weights["e3"])[0])
     assert not np.array_equal(unrated, traded)
 
 
@@ -312,3 +314,31 @@ def test_a_corrupt_choice_stream_in_a_file_is_a_container_error(cluttered):
                                   payload, entry.post_filter))
     with pytest.raises(ContainerError, match="patch choices: choice alphabet 11"):
         mapsqueeze.decompress(serialise_container(reader.header, records), model=model, workers=1)
+
+
+def test_a_copy_of_e3_under_another_name_searches_with_e3s_copy_weight(cluttered, tmp_path):
+    """The copy weight is the model config's (`patch_choice_copy_weight`), not looked up by name: e3 copied under
+    another name writes e3's tile payloads; with the weight set to 0 the search, and so the payload, differs."""
+    import json
+    import shutil
+
+    from mapsqueeze.model.shipped import CONFIG_FILE, SHIPPED_DIR
+
+    points, _ = cluttered
+    copies = {}
+    for name, weight in (("my-e3", 2.0), ("e3-unweighted", 0.0)):
+        copies[name] = tmp_path / name
+        shutil.copytree(SHIPPED_DIR / "e3", copies[name])
+        config = json.loads((copies[name] / CONFIG_FILE).read_text())
+        (copies[name] / CONFIG_FILE).write_text(json.dumps({**config, "name": name,
+                                                            "patch_choice_copy_weight": weight}))
+
+    def tiles(model) -> list[tuple[int, bytes]]:
+        reader, stream = open_container(mapsqueeze.compress(points, model=model, workers=1))
+        with stream:
+            return [(entry.post_filter, reader.payload(position)) for position, entry in enumerate(reader.entries)]
+
+    shipped = tiles("e3")
+    assert PATCH_CHOICES in {setting for setting, _ in shipped}
+    assert tiles(str(copies["my-e3"])) == shipped
+    assert tiles(str(copies["e3-unweighted"])) != shipped

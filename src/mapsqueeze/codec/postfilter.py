@@ -15,7 +15,7 @@ The post-filter reworks a decoded tile with local surface operations (`geometry.
   of PATCH_OPTIONS per patch (pull strength, extra points, disk radius), the choices entropy coded at the start of
   the tile's payload (`encode_patch_choices`). The encoder decodes the tile as the decoder will and searches the
   options patch by patch for the highest IoU with the tile's points (`search_patch_choices`; for e3 also
-  weighing D_e and the choices' bits, PATCH_CHOICE_COPY_WEIGHTS).
+  weighing D_e and the choices' bits, its config's `patch_choice_copy_weight`).
 - neighbour planes (bits 0-4, `--post-filter auto`): snap: each point projected onto the PCA plane of its k nearest
   decoded points; spread: extra points on small disks of those planes around each point (fills the gaps between
   clumps); isolated: points with fewer than ISOLATED_MIN_NEIGHBOURS others within ISOLATED_RADIUS_M dropped. The
@@ -96,20 +96,9 @@ IOU_PER_LOG_RATE = 0.12
 their shipped rate points from 0.08 to 1 bpp, except 0.01 between KITTI's e2 and e3 (BENCHMARKS.md, "Against G-PCC
 and the full classical front: the default decode"). Patch choices are kept when they gain more IoU than this
 times the log of the payload growth they cost, so they beat moving along the front."""
-PATCH_CHOICE_COPY_WEIGHTS = {"e3": 2.0}
-"""Per shipped model (by name) whose search trades IoU for D_e and rate: its copy weight
-(`occupancy.patch_option_ious`: each extra point per point of a patch's option counts as this many more shared IoU
-voxels, times the share of the option's voxels the tile's points occupy), then PATCH_CHOICE_RATE_SWEEPS sweeps that
-charge the choices' bits at IOU_PER_LOG_RATE per e-fold of the tile's payload. Measured on the real submaps and the
-30 simulated test submaps (BENCHMARKS.md, "Patch choices"): for e3, KITTI's rate point goes from D_e 0.816 x the
-classical front's at +0.008 IoU to 0.7998 x at +0.0014 (1.7 % fewer bytes), the first real rate point inside issue
-15's target; on the simulated ones the D_e ratio falls by 0.012 and the IoU difference by 0.0055 on average, the
-same rate points met. The other models search for IoU alone: for them no variant measured met more rate points (the
-bits alone made KITTI e0 and e1 worse on both metrics; credits for extra points trade IoU, which most of their rate
-points lack, for D_e)."""
 PATCH_CHOICE_RATE_SWEEPS = 2
-"""Sweeps charging the choices' bits after the PATCH_CHOICE_SWEEPS without, for the models of
-PATCH_CHOICE_COPY_WEIGHTS."""
+"""Sweeps charging the choices' bits after the PATCH_CHOICE_SWEEPS without, for a model with a copy weight
+(`ModelConfig.patch_choice_copy_weight`)."""
 
 
 def patch_planes_byte(copies: int) -> int:
@@ -345,12 +334,12 @@ class PatchChoiceSearch:
 
 
 def search_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsampling_factors, frame_m: np.ndarray,
-                         extent_m: np.ndarray, byte: int, model_name: str = "", payload_bytes: int = 0
+                         extent_m: np.ndarray, byte: int, copy_weight: float = 0.0, payload_bytes: int = 0
                          ) -> PatchChoiceSearch | None:
     """The tile's patch choices (one per embedding point) of a greedy search (`occupancy.patch_option_ious`,
     PATCH_CHOICE_SWEEPS sweeps from the option of the tile's setting `byte`) for the highest IoU with the tile's
-    points, or for a model of PATCH_CHOICE_COPY_WEIGHTS (`model_name`) with its copy weight and then
-    PATCH_CHOICE_RATE_SWEEPS sweeps charging each bit of the choices IOU_PER_LOG_RATE / (8 payload_bytes), the
+    points, or, with a model's `copy_weight` > 0 (`ModelConfig.patch_choice_copy_weight`), for that weighed IoU and
+    then PATCH_CHOICE_RATE_SWEEPS sweeps charging each bit of the choices IOU_PER_LOG_RATE / (8 payload_bytes), the
     network payload's bytes (none when 0); None when the tile's voxel box is too large for the search
     (`patch_choice_prefix` decides whether they pay).
 
@@ -360,7 +349,6 @@ def search_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
 
     patch = int(np.prod(upsampling_factors, dtype=np.int64))  # the points of one embedding point
     start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)
-    copy_weight = PATCH_CHOICE_COPY_WEIGHTS.get(model_name, 0.0)
     rated = copy_weight > 0 and payload_bytes > 0
     found = patch_option_ious(original_world, uncropped, patch, PATCH_OPTIONS, extent_m, start, frame_m,
                               IOU_VOXEL_M, PATCH_CHOICE_SWEEPS, copy_weight,

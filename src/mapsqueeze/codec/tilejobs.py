@@ -169,7 +169,7 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
             del distortion, decoded  # the candidates' decodes and trees: the search's arrays take their memory
             search = search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped,
                                           model.config.upsampling_factors, frame, extent, post_filter,
-                                          model.model_id, network_bytes)
+                                          model.config.patch_choice_copy_weight, network_bytes)
     return _candidates(classical, d_e), network_d_e, post_filter, search
 
 
