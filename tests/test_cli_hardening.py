@@ -317,3 +317,85 @@ def test_density_counts_the_box_of_each_tiles_points(tiny_model_dir):
     assert info.n_tiles == 1 and abs(len(decoded) - 20.0 * box_m3) <= 20.0 * 0.01 * box_m3
     help_text = cli_subprocess("decompress", "--help", timeout=120).stdout
     assert "bounding box of each" in " ".join(help_text.replace("│", " ").split())
+
+
+# --- a demanding new user's error paths: one line naming the problem, exit code 2, nothing written ---------------
+
+def truncated(path: Path, fraction: float) -> Path:
+    """A copy of `path` cut to `fraction` of its length, beside it."""
+    data = path.read_bytes()
+    cut = path.with_name(f"cut-{fraction:g}-{path.name}")
+    cut.write_bytes(data[:int(len(data) * fraction)])
+    return cut
+
+
+@pytest.mark.parametrize("case", ["directory as input", "directory as decompress output", "directory as convert output",
+                                  "convert into a missing folder", "truncated LAS", "truncated LAZ",
+                                  "truncated ascii PCD"])
+def test_bad_paths_and_truncated_files_name_the_problem(run_cli, tiny_model_dir, map_file, tmp_path, case):
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    points = ground(2000) + UTM
+    if case == "directory as input":
+        args, expected = ["compress", folder, "-o", tmp_path / "x.msq"], f"{folder}: is a directory, not a point-cloud"
+    elif case == "directory as decompress output":
+        mapsqueeze.compress_file(map_file, tmp_path / "map.msq", str(tiny_model_dir))
+        args, expected = ["decompress", tmp_path / "map.msq", "-o", folder], f"{folder}: is a directory"
+    elif case == "directory as convert output":
+        args, expected = ["convert", map_file, folder], f"{folder}: is a directory"
+    elif case == "convert into a missing folder":  # refused before the input is read: a truncated input says nothing
+        write_points(tmp_path / "in.las", points)
+        args = ["convert", truncated(tmp_path / "in.las", 0.5), tmp_path / "missing" / "out.ply"]
+        expected = "missing/out.ply: folder"
+    elif case == "truncated LAS":  # cut inside the point records: the header's count and record size tell
+        write_points(tmp_path / "in.las", points)
+        args, expected = ["convert", truncated(tmp_path / "in.las", 0.5), tmp_path / "out.ply"], "(truncated?)"
+    elif case == "truncated LAZ":
+        write_points(tmp_path / "in.laz", points)
+        args = ["convert", truncated(tmp_path / "in.laz", 0.5), tmp_path / "out.ply"]
+        expected = "corrupt or truncated LAZ point data"
+    else:
+        write_points(tmp_path / "in.pcd", points, format="pcd-ascii")
+        args = ["convert", truncated(tmp_path / "in.pcd", 0.5), tmp_path / "out.ply"]
+        expected = "corrupt PCD ascii data (the number of columns changed"
+    before = sorted(tmp_path.rglob("*"))
+    code, out, err = run_cli(*map(str, args))
+    assert (code, out) == (2, "") and err.startswith("error: ") and err.count("\n") == 1, err
+    assert expected in err and "usecols" not in err
+    assert sorted(tmp_path.rglob("*")) == before  # no output, no temporary file
+
+
+@pytest.mark.parametrize("config", [[1, 2], {"tile_size": "abc"}, {"subsampling_dist": "x"}, {"map_size": 0},
+                                    {"max_input_points": -5}, {"tile_size": [8, 8, float("inf")]}, {"name": 7},
+                                    None])
+def test_a_model_folder_with_a_bad_config_is_one_line_naming_it(run_cli, tiny_model_dir, map_file, tmp_path, config):
+    model = tmp_path / "model"
+    shutil.copytree(tiny_model_dir, model)
+    if config is None:
+        (model / "config.json").unlink()
+    elif isinstance(config, dict):
+        (model / "config.json").write_text(json.dumps({**json.loads((model / "config.json").read_text()), **config}))
+    else:
+        (model / "config.json").write_text(json.dumps(config))
+    code, out, err = run_cli("compress", str(map_file), "-o", str(tmp_path / "x.msq"), "--model", str(model))
+    assert (code, out) == (2, "") and err.startswith(f"error: {model / 'config.json'}: ") and err.count("\n") == 1
+    assert not (tmp_path / "x.msq").exists()
+
+
+def test_a_msq_cut_anywhere_is_one_line_for_info_and_decompress(run_cli, tiny_model_dir, tmp_path):
+    """Cut at every tenth of its length and one byte short: header, tile table, payloads, attribute streams."""
+    source = tmp_path / "map.ply"
+    points = np.concatenate([ground(3000, 14.0, seed) + [9.0 * seed, 0, 0] for seed in range(3)]) + UTM
+    write_points(source, points, attributes={"intensity": np.arange(len(points), dtype=np.uint16) % 200})
+    whole = tmp_path / "map.msq"
+    mapsqueeze.compress_file(source, whole, str(tiny_model_dir))
+    assert mapsqueeze.info(whole).n_tiles > 1 and mapsqueeze.info(whole).attributes == ("intensity",)
+    size = whole.stat().st_size
+    for length in sorted({size * tenth // 10 for tenth in range(10)} | {size - 1}):
+        cut = tmp_path / "cut.msq"
+        cut.write_bytes(whole.read_bytes()[:length])
+        for args in (["info", cut], ["decompress", cut, "-o", tmp_path / "out.las", "--model", tiny_model_dir]):
+            code, out, err = run_cli(*map(str, args))
+            assert (code, out) == (2, "") and err.startswith(f"error: {cut}: ") and err.count("\n") == 1, (length, err)
+            assert "truncated" in err or "too short" in err, (length, err)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.msq", "map.msq", "map.ply"]

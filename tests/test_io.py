@@ -373,7 +373,7 @@ def test_write_into_missing_directory_or_onto_a_directory(tmp_path):
         write_points(tmp_path / "absent" / "cloud.ply", local_cloud())
     assert_single_line_naming(excinfo, tmp_path / "absent" / "cloud.ply")
     (tmp_path / "folder.ply").mkdir()
-    with pytest.raises(PointCloudFormatError, match="cannot write"):
+    with pytest.raises(PointCloudFormatError, match="folder.ply: is a directory, not a point-cloud file"):
         write_points(tmp_path / "folder.ply", local_cloud())
     assert [entry.name for entry in tmp_path.iterdir()] == ["folder.ply"]
 

@@ -5,7 +5,7 @@ from pathlib import Path
 import typer
 
 from mapsqueeze.cli.app import FORMAT_HELP, app, make_console
-from mapsqueeze.io import dropped_fields, read_point_cloud, write_points
+from mapsqueeze.io import check_output_path, dropped_fields, format_name, read_point_cloud, write_points
 
 
 @app.command()
@@ -17,6 +17,8 @@ def convert(
 ) -> None:
     """Convert a point cloud between formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD, LAS/LAZ, .npy), keeping
     every attribute and the LAS header's metadata the output format can hold."""
+    format_name(output_path, out_format)  # a bad output fails before the input is read
+    check_output_path(output_path)
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
     warn_dropped(cloud.attributes, output_path, out_format)

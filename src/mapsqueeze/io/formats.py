@@ -92,8 +92,11 @@ _EXTENSIONS = sorted(((ext, fmt.name) for fmt in FORMATS.values() for ext in fmt
 
 
 def format_name(path: str | os.PathLike, format: str | None = None) -> str:
-    """The format a path is read or written in: `format` when given, else from the extension (or raise)."""
+    """The format a path is read or written in: `format` when given, else from the extension (or raise; a
+    directory is no point-cloud file whatever its name)."""
     path = Path(path)
+    if path.is_dir():
+        raise PointCloudFormatError(f"{path}: is a directory, not a point-cloud file")
     if format is not None:
         name = format.lower().lstrip(".")
         if name not in FORMATS:

@@ -96,6 +96,7 @@ def las_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
             declared, seen = reader.header.point_count, 0
             if declared == 0:
                 raise InvalidPointCloudError(f"{path}: the point cloud is empty")
+            _check_point_data_size(path, reader.header)
             metadata = _metadata(reader.header, list(reader.header.evlrs or []))
             for part in reader.chunk_iterator(chunk_points):
                 if len(part):
@@ -107,8 +108,23 @@ def las_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
             if seen != declared:
                 raise PointCloudFormatError(
                     f"{path}: LAS header declares {declared:,} points, the file holds {seen:,}")
+    except lazrs.LazrsError as exc:
+        raise PointCloudFormatError(f"{path}: corrupt or truncated LAZ point data ({exc})") from None
     except _ERRORS as exc:
         raise PointCloudFormatError(f"{path}: corrupt LAS/LAZ file ({exc})") from None
+
+
+def _check_point_data_size(path: Path, header: laspy.LasHeader) -> None:
+    """PointCloudFormatError when an uncompressed LAS file ends before the point records its header declares."""
+    if header.are_points_compressed:
+        return
+    record, start = header.point_format.size, header.offset_to_point_data
+    needed = start + header.point_count * record
+    size = path.stat().st_size
+    if size < needed:
+        raise PointCloudFormatError(
+            f"{path}: LAS header declares {header.point_count:,} points of {record} bytes from byte {start:,}, "
+            f"{needed:,} bytes in all; the file holds {size:,} (truncated?)")
 
 
 def _point_format(stats: CloudStats, preferred: int | None) -> int:

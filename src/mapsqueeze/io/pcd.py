@@ -92,8 +92,9 @@ def _parse_ascii(body: bytes, dtype: np.dtype, num_points: int, path: Path) -> n
     values_per_point = sum(int(np.prod(dtype[name].shape)) for name in dtype.names)
     try:
         rows = np.loadtxt(io.StringIO(body.decode("ascii")), dtype=np.float64, ndmin=2)
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise PointCloudFormatError(f"{path}: corrupt PCD ascii data ({exc})") from None
+    except (UnicodeDecodeError, ValueError) as exc:  # without numpy's advice to pass `usecols`, not ours to follow
+        reason = str(exc).split("; use `usecols`")[0]
+        raise PointCloudFormatError(f"{path}: corrupt PCD ascii data ({reason})") from None
     if rows.shape != (num_points, values_per_point):
         raise PointCloudFormatError(
             f"{path}: PCD header declares {num_points:,} points of {values_per_point} values, "

@@ -68,17 +68,30 @@ class ModelConfig:
     extra: dict = field(default_factory=dict)  # provenance (e.g. imported from), training summary
 
     def __post_init__(self) -> None:
-        self.tile_size = tuple(float(v) for v in self.tile_size)
-        self.encoder_dims = tuple(int(v) for v in self.encoder_dims)
-        self.subsampling_factors = tuple(float(v) for v in self.subsampling_factors)
-        self.max_neighbors = tuple(int(v) for v in self.max_neighbors)
-        if self.upsampling_factors is None:
-            self.upsampling_factors = density_law_factors(self.density_a, self.density_b, self.subsampling_dist)
-        self.upsampling_factors = tuple(int(v) for v in self.upsampling_factors)
+        try:
+            self.tile_size = tuple(float(v) for v in self.tile_size)
+            self.encoder_dims = tuple(int(v) for v in self.encoder_dims)
+            self.subsampling_factors = tuple(float(v) for v in self.subsampling_factors)
+            self.max_neighbors = tuple(int(v) for v in self.max_neighbors)
+            for name in _POSITIVE_NUMBERS:
+                _require_numbers(name, getattr(self, name))
+            if self.upsampling_factors is None:
+                self.upsampling_factors = density_law_factors(self.density_a, self.density_b, self.subsampling_dist)
+            self.upsampling_factors = tuple(int(v) for v in self.upsampling_factors)
+        except (TypeError, ValueError, OverflowError) as exc:  # e.g. a config.json with a string for a number
+            raise ModelError(f"model config has a value of the wrong type ({exc})") from None
+        if not isinstance(self.name, str) or not isinstance(self.extra, dict):
+            raise ModelError(f"model config: name must be a string and extra an object, got {self.name!r} and "
+                             f"{type(self.extra).__name__}")
         if not (len(self.encoder_dims) == len(self.subsampling_factors) == len(self.max_neighbors)):
             raise ModelError("encoder_dims, subsampling_factors and max_neighbors must have the same length")
         if self.subsampling_dist <= 0 or any(k < 1 for k in self.upsampling_factors):
             raise ModelError("subsampling_dist must be > 0 and every upsampling factor >= 1")
+        for name in _POSITIVE_NUMBERS:
+            values = getattr(self, name)
+            for value in values if isinstance(values, tuple) else (values,):
+                if not 0 < value < math.inf:
+                    raise ModelError(f"model config: {name} must be positive and finite, got {values!r}")
         for name in ("refine_dead_zone_m", "patch_choice_copy_weight"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
@@ -120,6 +133,8 @@ class ModelConfig:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ModelError(f"model config is not valid JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise ModelError(f"model config is JSON {type(data).__name__}, not an object of settings")
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - known
         if unknown:
@@ -128,7 +143,29 @@ class ModelConfig:
 
     @classmethod
     def load(cls, path: Path) -> "ModelConfig":
-        return cls.from_json(Path(path).read_text())
+        """The config of a config.json; ModelError naming the file when it is missing, unreadable or invalid."""
+        try:
+            text = Path(path).read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ModelError(f"{path}: cannot read the model config ({getattr(exc, 'strerror', None) or exc})"
+                             ) from None
+        try:
+            return cls.from_json(text)
+        except ModelError as exc:
+            raise ModelError(f"{path}: {exc}") from None
+
+
+_POSITIVE_NUMBERS = ("subsampling_dist", "map_size", "tile_size", "encoder_dims", "subsampling_factors",
+                     "max_neighbors", "min_kernel_radius", "num_kernel_points", "embedding_dim", "decoder_dim",
+                     "decoder_hidden", "decoder_kernel_radius", "density_a", "max_input_points")
+"""The settings (or each value of a tuple setting) that must be positive, finite numbers."""
+
+
+def _require_numbers(name: str, values) -> None:
+    """TypeError unless `values` (a number or a tuple of them) are int or float, not bool."""
+    for value in values if isinstance(values, tuple) else (values,):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TypeError(f"{name} must be a number, got {value!r}")
 
 
 def density_law(a: float, b: float, subsampling_dist: float) -> float:
