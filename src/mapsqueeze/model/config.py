@@ -73,8 +73,8 @@ class ModelConfig:
             self.encoder_dims = tuple(int(v) for v in self.encoder_dims)
             self.subsampling_factors = tuple(float(v) for v in self.subsampling_factors)
             self.max_neighbors = tuple(int(v) for v in self.max_neighbors)
-            for name in _POSITIVE_NUMBERS:
-                _require_numbers(name, getattr(self, name))
+            for name in _POSITIVE_NUMBERS:  # before the density law divides by them
+                _require_positive(name, getattr(self, name))
             if self.upsampling_factors is None:
                 self.upsampling_factors = density_law_factors(self.density_a, self.density_b, self.subsampling_dist)
             self.upsampling_factors = tuple(int(v) for v in self.upsampling_factors)
@@ -85,13 +85,8 @@ class ModelConfig:
                              f"{type(self.extra).__name__}")
         if not (len(self.encoder_dims) == len(self.subsampling_factors) == len(self.max_neighbors)):
             raise ModelError("encoder_dims, subsampling_factors and max_neighbors must have the same length")
-        if self.subsampling_dist <= 0 or any(k < 1 for k in self.upsampling_factors):
-            raise ModelError("subsampling_dist must be > 0 and every upsampling factor >= 1")
-        for name in _POSITIVE_NUMBERS:
-            values = getattr(self, name)
-            for value in values if isinstance(values, tuple) else (values,):
-                if not 0 < value < math.inf:
-                    raise ModelError(f"model config: {name} must be positive and finite, got {values!r}")
+        if any(k < 1 for k in self.upsampling_factors):
+            raise ModelError(f"model config: every upsampling factor must be >= 1, got {self.upsampling_factors}")
         for name in ("refine_dead_zone_m", "patch_choice_copy_weight"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
@@ -161,11 +156,14 @@ _POSITIVE_NUMBERS = ("subsampling_dist", "map_size", "tile_size", "encoder_dims"
 """The settings (or each value of a tuple setting) that must be positive, finite numbers."""
 
 
-def _require_numbers(name: str, values) -> None:
-    """TypeError unless `values` (a number or a tuple of them) are int or float, not bool."""
+def _require_positive(name: str, values) -> None:
+    """TypeError unless `values` (a number or a tuple of them) are int or float, not bool; ModelError unless each is
+    positive and finite."""
     for value in values if isinstance(values, tuple) else (values,):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise TypeError(f"{name} must be a number, got {value!r}")
+        if not 0 < value < math.inf:
+            raise ModelError(f"model config: {name} must be positive and finite, got {values!r}")
 
 
 def density_law(a: float, b: float, subsampling_dist: float) -> float:
