@@ -317,6 +317,13 @@ def test_density_law_fit_recovers_planar_dimension():
     assert fit.rmse < 0.1 * max(fit.mean_rates)
 
 
+@pytest.mark.parametrize("bad", [{"density_a": 0}, {"map_size": -40.0}, {"tile_size": (40.0, 40.0, 0.0)},
+                                 {"max_input_points": 0}, {"subsampling_dist": "3"}, {"upsampling_factors": (6, 6, 0)}])
+def test_bad_sizes_are_a_model_error(bad):
+    with pytest.raises(ModelError, match="model config"):
+        ModelConfig.for_rate("e0", **bad)
+
+
 def test_config_json_round_trip():
     config = ModelConfig.for_rate("e2")
     assert ModelConfig.from_json(config.to_json()) == config
