@@ -687,6 +687,49 @@ def test_streaming_refuses_an_overfull_tile_before_reading_it_back(model, tmp_pa
         mapsqueeze.compress_file(source, tmp_path / "map.msq", model=model)
 
 
+def _region_chunks(points: np.ndarray, parts: int) -> list[np.ndarray]:
+    """The map sorted by x and cut into `parts` chunks: a file that holds its map region by region."""
+    return np.array_split(points[np.argsort(points[:, 0], kind="stable")], parts)
+
+
+def test_streaming_encodes_tiles_as_the_map_is_read(map_points, model, monkeypatch):
+    from mapsqueeze.codec import compress as compress_module
+    from mapsqueeze.codec.compress import compress_chunks
+
+    chunks = _region_chunks(map_points, 6)
+    expected = mapsqueeze.compress(np.concatenate(chunks), model=model, precision="q")
+    events = []
+    embed_job = compress_module.embed_job
+
+    def pass_chunks():
+        for number, chunk in enumerate(chunks):
+            events.append(("chunk", number))
+            yield chunk
+
+    def recorded(job, item):
+        events.append(("tile", item[0]))
+        return embed_job(job, item)
+
+    monkeypatch.setattr(compress_module, "embed_job", recorded)
+    streamed = compress_chunks(pass_chunks, model, Precision.q, workers=1)
+    assert streamed == expected
+    second_pass = events[events.index(("chunk", 0), 1):]
+    tiles = [position for position, event in enumerate(second_pass) if event[0] == "tile"]
+    assert len(tiles) == mapsqueeze.info(streamed).n_tiles
+    assert tiles[0] < second_pass.index(("chunk", len(chunks) - 1))  # a tile encoded before the last chunk is read
+
+
+def test_streaming_refuses_points_of_a_tile_already_encoded(map_points, model):
+    from mapsqueeze.codec.compress import compress_chunks
+
+    chunks = _region_chunks(map_points, 2)
+    changed = chunks[1].copy()
+    changed[0] = chunks[0][0]  # the same count, one point moved into a tile the first chunk completed
+    passes = iter([chunks, [chunks[0], changed]])
+    with pytest.raises(InvalidPointCloudError, match="input changed between the two reading passes"):
+        compress_chunks(lambda: iter(next(passes)), model, Precision.q, workers=1)
+
+
 def test_decompress_file_refuses_an_unknown_output_format_before_decoding(compressed, tmp_path, monkeypatch):
     from mapsqueeze.errors import PointCloudFormatError
 

@@ -64,6 +64,10 @@ SPILL_CHUNK_POINTS = 1 << 17
 """Points per chunk that decompress_file reads back from its spill files and writes (3 MB of coordinates; the
 writer's checks make a few temporaries of that size)."""
 
+COMPRESS_CHUNK_POINTS = 1 << 16
+"""Points per chunk that compress_file reads (1.5 MB of coordinates): its second pass tiles and spills a chunk while
+the first tiles are encoded (`compress_chunks`), so the chunk's temporaries add to the encoders' memory."""
+
 
 RATE_TARGET_MODELS = ("e0", "e1", "e2", "e3")
 """The models a rate target (max_error / bpp) chooses from when no model is given."""
@@ -312,7 +316,7 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
 
     def chunks():
         dropped[0] = kept = 0
-        for chunk in iter_point_clouds(input_path, format):
+        for chunk in iter_point_clouds(input_path, format, COMPRESS_CHUNK_POINTS):
             if not keep_zero_points:
                 points, n_zero = drop_zero_points(chunk.points, allow_empty=True)
                 if n_zero:

@@ -142,8 +142,9 @@ def compress_chunks(
     chunks() is called twice (pass 1: extent, count, attribute ranges; pass 2: points); each call must yield the
     same chunks ((n, 3) float64 arrays, or PointClouds whose attributes and the first one's metadata are coded as
     compress_map's) in the same order. Pass 2 appends every tile's points (and attributes) to spill files in a
-    temporary directory (in spill_dir, default the system's; 24 bytes a point plus the attributes), then encodes the
-    tiles back one by one and hands them to the encoding workers (memory: one tile per worker).
+    temporary directory (in spill_dir, default the system's; 24 bytes a point plus the attributes) and hands each
+    tile, read back, to the encoding workers as soon as no later chunk's bounding box (from pass 1) reaches it: a
+    map whose file holds it region by region is encoded as it is read (memory: a chunk and one tile per worker).
     """
     check_refine_steps(refine_steps)
     models, tile_size = _model_list(model)
@@ -151,8 +152,10 @@ def compress_chunks(
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     ranges: dict[str, tuple[np.dtype, float, float]] = {}
     metadata = None
+    boxes = []  # each chunk's bounding box
     for chunk in _checked_clouds(chunks()):
         chunk_low, chunk_high = bounding_box(chunk.points)
+        boxes.append((chunk_low, chunk_high))
         lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
         metadata = chunk.metadata if metadata is None else metadata
         for name, (dtype, low, high) in _ranges(chunk.attributes).items():
@@ -164,32 +167,62 @@ def compress_chunks(
     schema = _attribute_schema(ranges, metadata, attribute_options)
     coded = [(spec.name, spec.dtype) for spec in schema.specs] if schema else []
     origin, shape = fit_grid(lowest, highest, tile_size)  # the grid compress_map fits to the whole map
+    last_chunk = _last_chunks(boxes, origin, shape, tile_size)
     with work_dir("mapsqueeze-tiles-", spill_dir) as spill:
         counts: dict[tuple[int, int, int], int] = {}
-        for chunk in _checked_clouds(chunks(), n_points):
-            for tile in tile_map(chunk.points, tile_size, origin=origin, shape=shape):
-                with open(os.path.join(spill, _spill_name(tile.index)), "ab") as stream:
-                    stream.write(chunk.points[tile.point_indices].tobytes())
-                for column, (name, dtype) in enumerate(coded):
-                    with open(os.path.join(spill, _spill_name(tile.index, column)), "ab") as stream:
-                        stream.write(np.asarray(chunk.attributes[name], dtype=dtype)[tile.point_indices].tobytes())
-                counts[tile.index] = counts.get(tile.index, 0) + len(tile.point_indices)
-        if sum(counts.values()) != n_points:
-            raise InvalidPointCloudError("map: the input changed between the two reading passes")
-        indices = sorted(counts)  # the order of tile_map: by (i, j, k)
-        for index in indices:  # refused before a tile that large is read back into memory
-            check_tile_size(index, counts[index])
-        if kernels:
-            kernels.join()
+        indices: list[tuple[int, int, int]] = []  # the tiles in tile order, once every one is spilled
 
-        def tile_points():
-            return ((index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3),
-                     {name: np.fromfile(os.path.join(spill, _spill_name(index, column)), dtype=dtype)
-                      for column, (name, dtype) in enumerate(coded)})
-                    for index in indices)
+        def read_back(index):
+            return (index, np.fromfile(os.path.join(spill, _spill_name(index)), dtype=np.float64).reshape(-1, 3),
+                    {name: np.fromfile(os.path.join(spill, _spill_name(index, column)), dtype=dtype)
+                     for column, (name, dtype) in enumerate(coded)})
 
-        return _compress_tiles(tile_points, len(indices), n_points, origin, models, precision, position_step_m,
-                               feature_step_std, progress, refine_steps, target, schema, workers, dask_scheduler)
+        def spilled_tiles():
+            """Pass 2: append each chunk's tiles to their spill files; yield each tile as soon as no later chunk
+            can hold points of it (`_last_chunks`), so that the first tiles are encoded while the map is read."""
+            waiting: dict[int, list[tuple[int, int, int]]] = {}  # chunk number -> the tiles complete after it
+            done = set()
+            for number, chunk in enumerate(_checked_clouds(chunks(), n_points)):
+                for tile in tile_map(chunk.points, tile_size, origin=origin, shape=shape):
+                    if tile.index in done:
+                        raise InvalidPointCloudError("map: the input changed between the two reading passes")
+                    with open(os.path.join(spill, _spill_name(tile.index)), "ab") as stream:
+                        stream.write(chunk.points[tile.point_indices].tobytes())
+                    for column, (name, dtype) in enumerate(coded):
+                        with open(os.path.join(spill, _spill_name(tile.index, column)), "ab") as stream:
+                            stream.write(np.asarray(chunk.attributes[name], dtype=dtype)[tile.point_indices].tobytes())
+                    if tile.index not in counts:
+                        waiting.setdefault(max(number, last_chunk(tile.index)), []).append(tile.index)
+                    counts[tile.index] = counts.get(tile.index, 0) + len(tile.point_indices)
+                complete = sorted(waiting.pop(number, []))
+                for index in complete:  # refused before a tile that large is read back into memory
+                    check_tile_size(index, counts[index])
+                done.update(complete)
+                yield from map(read_back, complete)
+            if sum(counts.values()) != n_points or waiting:
+                raise InvalidPointCloudError("map: the input changed between the two reading passes")
+            indices.extend(sorted(counts))  # the order of tile_map: by (i, j, k)
+            if kernels:
+                kernels.join()
+
+        return _compress_tiles(lambda: map(read_back, indices), int(np.prod(shape)), n_points, origin, models,
+                               precision, position_step_m, feature_step_std, progress, refine_steps, target, schema,
+                               workers, dask_scheduler, first_tiles=spilled_tiles())
+
+
+def _last_chunks(boxes: list[tuple[np.ndarray, np.ndarray]], origin: np.ndarray, shape: np.ndarray,
+                 tile_size: np.ndarray) -> Callable[[tuple[int, int, int]], int]:
+    """index -> the last chunk whose bounding box (`boxes`, in chunk order) reaches tile `index` of the grid
+    (`tile_map`'s index of a point is monotonic in each coordinate, so a chunk's tiles lie between those of its
+    box's corners); -1 for none."""
+    corners = [np.clip(np.floor((np.stack(ends) - origin) / tile_size).astype(np.int64), 0, shape - 1)
+               for ends in zip(*boxes)]
+
+    def last(index: tuple[int, int, int]) -> int:
+        reached = np.flatnonzero(np.all((corners[0] <= index) & (index <= corners[1]), axis=1))
+        return int(reached[-1]) if len(reached) else -1
+
+    return last
 
 
 ENCODER_KERNEL_MODULES = ("mapsqueeze.geometry.grid", "mapsqueeze.model.influences", "mapsqueeze.geometry.nearest",
@@ -201,10 +234,11 @@ them (the command line starts without numba)."""
 def _load_kernels_meanwhile(dask_scheduler: str | None) -> threading.Thread | None:
     """A started thread that imports ENCODER_KERNEL_MODULES and loads numba's registries (what the first kernel
     call does: ~0.4-0.5 s in all) while this one reads and tiles the map, on a core the reading leaves idle; join it
-    before the tiles are encoded. It does nothing with a single core, on a Dask cluster (whose workers import
-    their own; the coordinator would hold numba's memory for nothing) or once the modules are loaded (a process
-    that compressed before): None then. What fails here is left to the tile jobs, which import the same modules and
-    report it."""
+    once the map is read (tiles encoded before, as `compress_chunks` streams them, wait for the modules on Python's
+    import locks and for the registries on numba's compiler lock). It does nothing with a single core, on a Dask
+    cluster (whose workers import their own; the coordinator would hold numba's memory for nothing) or once the
+    modules are loaded (a process that compressed before): None then. What fails here is left to the tile jobs,
+    which import the same modules and report it."""
     if dask_scheduler or default_workers() < 2 or all(name in sys.modules for name in ENCODER_KERNEL_MODULES):
         return None
     thread = threading.Thread(target=_load_kernels, name="mapsqueeze-kernels", daemon=True)
@@ -274,17 +308,25 @@ def _compress_tiles(
     schema: AttributeSchema | None = None,
     workers: int | None = 1,
     dask_scheduler: str | None = None,
+    first_tiles: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]] | None = None,
 ) -> bytes:
     """Encode (tile index, its float64 world points, its attributes) triples, given in tile order by each call of
     tile_source(), with each model in turn; keep the model whose per-tile choices (`codec.modes`) suit the target
-    best; assemble (with an attribute section when `schema` is given)."""
+    best; assemble (with an attribute section when `schema` is given). first_tiles: the same triples in any order
+    (as a streamed map's tiles are spilled), for the first model's embeddings instead of tile_source(); n_tiles is
+    then at least their count (it only sizes the executor)."""
     best = None
     for position, model in enumerate(models):
+        first = first_tiles is not None and position == 0
+        encoded = _embed_tiles(first_tiles if first else tile_source(), n_tiles, origin, model, refine_steps,
+                               workers, dask_scheduler)
+        encoded.sort(key=lambda tile: tile.index)  # first_tiles come as they are read
+        n_tiles = len(encoded)
+
         def tile_progress(done: int, total: int, offset: int = position * n_tiles) -> None:
             if progress:
                 progress(offset + done, len(models) * n_tiles)
 
-        encoded = _embed_tiles(tile_source(), n_tiles, origin, model, refine_steps, workers, dask_scheduler)
         latent = _fit_latent(encoded, model, precision, position_step_m, feature_step_std)
         _tile_candidates(encoded, tile_source(), origin, model, latent, target, workers, dask_scheduler,
                          tile_progress)
