@@ -506,6 +506,22 @@ def test_chunks_written_are_numbered_in_the_output(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("name, offset", [("a.ply", 0.0), ("a.ply", UTM_OFFSET_M), ("a.bin", 0.0), ("a.npy", 0.0)])
+def test_iter_points_reports_a_file_cut_while_it_is_read(tmp_path, name, offset):
+    from mapsqueeze.io import iter_points
+
+    points = offset + np.random.default_rng(13).uniform(-50, 50, (5000, 3))  # UTM: a float64 PLY
+    write_points(tmp_path / name, points)
+    np.testing.assert_array_equal(np.concatenate(list(iter_points(tmp_path / name, chunk_points=1000))),
+                                  read_points(tmp_path / name))
+    size = (tmp_path / name).stat().st_size
+    chunks = iter_points(tmp_path / name, chunk_points=1000)
+    next(chunks)
+    os.truncate(tmp_path / name, size // 2)
+    with pytest.raises(PointCloudFormatError, match="cannot read"):
+        list(chunks)
+
+
 @pytest.mark.parametrize("name", ["a.ply", "a.npy", "a.las", "a.laz", "a.pcd", "a.ply-ascii"])
 def test_write_point_chunks_matches_write_points(tmp_path, name):
     from mapsqueeze.io import write_point_chunks

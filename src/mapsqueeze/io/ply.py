@@ -43,8 +43,10 @@ def ply_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
     names = names if attributes else []
     if len(data) == 0:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
+    xyz_only = data.dtype == np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8")])  # each row is a point's 3 floats
     for first, part in zip(range(0, len(data), chunk_points), row_chunks(data, chunk_points)):
-        points = validate_points(np.column_stack([part["x"], part["y"], part["z"]]), str(path), first, len(data))
+        points = part.view("<f8").reshape(-1, 3) if xyz_only else np.column_stack([part["x"], part["y"], part["z"]])
+        points = validate_points(points, str(path), first, len(data))
         yield PointCloud(points, {name: part[name].copy() for name in names if name not in ("x", "y", "z")})
 
 
