@@ -189,10 +189,12 @@ def test_a_shipped_model_is_named_by_a_digest_prefix_and_its_config(shipped_file
 
 def test_a_shipped_model_of_other_weights_needs_a_model_of_its_prefix_and_an_unknown_one_is_refused(shipped_file):
     """A file written by a build whose e0 has other weights still reads (info) and decodes with a model whose
-    digest starts with the file's prefix; this build's e0 is refused with the ModelError naming --model."""
+    digest, or one of the digests of its earlier versions with the same decoder, starts with the file's prefix;
+    this build's e0 is refused with the ModelError naming --model."""
     import types
 
     from mapsqueeze.codec.decompress import check_model
+    from mapsqueeze.model.config import SAME_DECODER_KEY
     from mapsqueeze.model.shipped import shipped_weights_sha256
 
     start, _, _ = head_layout(shipped_file)
@@ -208,10 +210,15 @@ def test_a_shipped_model_of_other_weights_needs_a_model_of_its_prefix_and_an_unk
     stream.close()
     body = reader.header.serialise()  # the prefix is written back in a shipped model's layout
     assert body[2:4] == b"e0" and body[4:12] == bytes.fromhex(prefix)
-    check_model(types.SimpleNamespace(weights_sha256=prefix + "0" * 48, model_id="e0"), reader.header, "f")
+    def model(sha: str, *same_decoder: str):
+        return types.SimpleNamespace(weights_sha256=sha, model_id="e0",
+                                     config=types.SimpleNamespace(extra={SAME_DECODER_KEY: list(same_decoder)}))
+
+    check_model(model(prefix + "0" * 48), reader.header, "f")
+    # a model whose encoder was retrained from weights of that prefix (the same decoder), and one of other lineage
+    check_model(model(shipped_weights_sha256("e0"), "1" * 64, prefix + "0" * 48), reader.header, "f")
     with pytest.raises(ModelError):
-        check_model(types.SimpleNamespace(weights_sha256=shipped_weights_sha256("e0"), model_id="e0"),
-                    reader.header, "f")
+        check_model(model(shipped_weights_sha256("e0"), "1" * 64), reader.header, "f")
     unknown = bytearray(shipped_file)
     unknown[start + 3:start + 4] = b"9"  # e9: no such shipped model
     with pytest.raises(ContainerError, match="names shipped model 'e9', which this mapsqueeze does not ship"):

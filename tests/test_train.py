@@ -112,3 +112,52 @@ def test_a_cycle_fitted_to_fewer_steps_than_the_time_holds_ends_the_run(run_cli,
     assert code == 0, err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == train.STEPS_BEFORE_RETIMING + 2
+
+
+@pytest.mark.slow
+def test_encoder_only_training_on_the_mean_distance_keeps_the_decoder_and_reads_the_init_models_files(
+        run_cli, train_only_dataset, tmp_path):
+    """`train --encoder-only --objective mean-distance` from the shipped e1: only encoder weights change (the decoder
+    and the batch-norm statistics stay the init's), the log and summary name the mean distance, and the model
+    records the init's digest, so a file the shipped e1 wrote decodes with it to the same points."""
+    import mapsqueeze
+    from mapsqueeze.model.config import SAME_DECODER_KEY
+    from mapsqueeze.model.shipped import SHIPPED_DIR
+
+    out = tmp_path / "run"
+    code, printed, err = run_cli("train", str(train_only_dataset), "-o", str(out), "--rate", "e1", "--epochs", "1",
+                                 "--batch-size", "1", "--max-steps", "2", "--init", str(SHIPPED_DIR / "e1"),
+                                 "--encoder-only", "--objective", "mean-distance")
+    assert code == 0, err
+    assert "lowest training mean distance" in printed
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["best_train_mean_distance_m"] > 0 and "best_train_chamfer_m2" not in summary
+    with open(out / "log.csv") as log:
+        assert next(csv.reader(log))[4:6] == ["train_mean_distance_m", "val_mean_distance_m"]
+    init, init_sha = load_network(SHIPPED_DIR / "e1")
+    trained, _ = load_network(out / "last")
+    before, after = init.state_dict(), trained.state_dict()
+    changed = {name for name in before if not torch.equal(before[name], after[name])}
+    assert changed and all(name.startswith("encoder.") for name in changed)
+    assert not any(name.endswith(("running_mean", "running_var")) for name in changed)
+    extra = trained.config.extra
+    assert extra["objective"] == "mean-distance" and extra["encoder_only"] is True
+    assert extra[SAME_DECODER_KEY] == [init_sha, *init.config.extra.get(SAME_DECODER_KEY, [])]
+    points = np.random.default_rng(3).random((4000, 3)) * [30, 30, 3]
+    data = mapsqueeze.compress(points, model="e1", workers=1)
+    assert np.array_equal(mapsqueeze.decompress(data, model=str(out / "last"), workers=1),
+                          mapsqueeze.decompress(data, workers=1))
+
+
+def test_encoder_only_needs_an_init_model_of_its_architecture_and_an_unknown_objective_is_refused(
+        run_cli, train_only_dataset, tmp_path):
+    from mapsqueeze.model.shipped import SHIPPED_DIR
+
+    code, _, err = run_cli("train", str(train_only_dataset), "-o", str(tmp_path / "a"), "--encoder-only")
+    assert code != 0 and "--encoder-only trains the encoder of a model given by --init" in err
+    code, _, err = run_cli("train", str(train_only_dataset), "-o", str(tmp_path / "b"), "--objective", "l2")
+    assert code != 0 and "unknown objective 'l2'; choose one of chamfer, mean-distance" in err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    code, _, err = run_cli("train", str(train_only_dataset), "-o", str(tmp_path / "c"), "--rate", "e2",
+                           "--init", str(SHIPPED_DIR / "e1"), "--encoder-only", "--max-steps", "1")
+    assert code != 0 and "the decoder of" in err and "differs from the e2 architecture's" in err

@@ -1,5 +1,6 @@
 """Training loop of the autoencoder (paper Sec. IV-A): Adam + one-cycle cosine schedule, batch by gradient
-accumulation, validation each epoch with the best checkpoint kept, resumable, CSV log, rich progress.
+accumulation, validation each epoch with the best checkpoint kept, resumable, CSV log, rich progress. Beyond the
+paper: the encoder alone on encode-time refinement's objective (`OBJECTIVES`, `TrainConfig.encoder_only`).
 
 Distributed data parallel: run under `torchrun --nproc-per-node N -m mapsqueeze train ...` (or `train --nproc N`,
 `train_processes`): every process trains on its share of each epoch's submaps (gloo on CPU, nccl on GPUs), the
@@ -26,7 +27,17 @@ import torch
 from mapsqueeze.errors import MapsqueezeError, ModelError
 from mapsqueeze.geometry.threads import set_threads
 from mapsqueeze.model import Autoencoder, ModelConfig, build_model, load_network, save_model
-from mapsqueeze.model.loss import chamfer_loss, depoco_loss
+from mapsqueeze.model.config import SAME_DECODER_KEY
+from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss
+
+OBJECTIVES = {"chamfer": "chamfer_m2", "mean-distance": "mean_distance_m"}
+"""Training objectives and the name of the figure each reports (log columns, summary, the model's config):
+- chamfer: the paper's loss (eq. 8), the Chamfer distance of the output and the intermediate clouds to the input
+  (at most max_points of the cloud), in m^2;
+- mean-distance: encode-time refinement's objective (`refine.refine_embedding`): the mean nearest-neighbour distance
+  both ways between the decoder's output and every point of the cloud, with the model's dead zone
+  (`ModelConfig.refine_dead_zone_m`), in m. Trained with --encoder-only, the encoder learns to give the embedding that
+  refinement would move it towards, under the decoder every file of that model decodes with."""
 
 
 @dataclass
@@ -46,6 +57,8 @@ class TrainConfig:
     max_steps: int | None = None  # stop after this many optimiser steps (time-boxed runs)
     max_minutes: float | None = None  # stop (after checkpointing) when this wall time is exceeded
     val_limit: int | None = None  # validate on at most this many submaps
+    objective: str = "chamfer"  # a key of OBJECTIVES
+    encoder_only: bool = False  # train the encoder alone: the decoder (from init) frozen, batch norm in eval mode
 
 
 @dataclass
@@ -123,8 +136,11 @@ def steps_within(minutes: float, elapsed_s: float, steps_taken: int, step_s: flo
 
 
 @torch.no_grad()
-def validate(network: Autoencoder, samples: list[Sample], device: torch.device) -> float:
-    """Mean Chamfer distance (m^2) between each validation cloud (<= max_input_points) and its reconstruction."""
+def validate(network: Autoencoder, samples: list[Sample], device: torch.device, objective: str = "chamfer") -> float:
+    """The objective's figure (`OBJECTIVES`) on the validation clouds, averaged: the Chamfer distance (m^2) between
+    each cloud's encoder input (<= max_input_points) and its reconstruction, or the mean distance (m) between the
+    reconstruction and every point of the cloud. Leaves the network in the mode it found."""
+    training = network.training
     network.eval()
     scale = network.config.map_size
     rng = np.random.default_rng(12345)
@@ -132,9 +148,34 @@ def validate(network: Autoencoder, samples: list[Sample], device: torch.device) 
     for s in samples:
         pts = torch.from_numpy(select_points(s.points, network.config.max_input_points, rng) / scale).to(device)
         out, _, _ = network(pts)
-        values.append(chamfer_loss(pts, out).item() * scale**2)
-    network.train()
+        if objective == "chamfer":
+            values.append(chamfer_loss(pts, out).item() * scale**2)
+        else:
+            cloud = torch.from_numpy(s.points / scale).to(device)
+            values.append(mean_distance_loss(cloud, out, dead_zone=_dead_zone(network.config)).item() * scale)
+    network.train(training)
     return float(np.mean(values)) if values else math.nan
+
+
+def _dead_zone(config: ModelConfig) -> float:
+    """The mean-distance objective's dead zone for this model (refinement's, `ModelConfig.refine_dead_zone_m`),
+    normalised units."""
+    return config.refine_dead_zone_m / config.map_size
+
+
+def trained_parameters(network: Autoencoder, cfg: TrainConfig) -> list[torch.nn.Parameter]:
+    """The parameters the optimiser steps: all of them, or with cfg.encoder_only the encoder's, the decoder's
+    frozen (requires_grad off)."""
+    if not cfg.encoder_only:
+        return list(network.parameters())
+    network.decoder.requires_grad_(False)
+    return list(network.encoder.parameters())
+
+
+def _set_training_mode(network: Autoencoder, cfg: TrainConfig) -> None:
+    """Training mode, or with cfg.encoder_only eval mode throughout: the encoder's batch norms keep the running
+    statistics the decoder was trained with, so training computes what compression does."""
+    network.train(not cfg.encoder_only)
 
 
 def init_from(network: Autoencoder, source_dir: Path) -> int:
@@ -149,6 +190,18 @@ def init_from(network: Autoencoder, source_dir: Path) -> int:
     own.update(matched)
     network.load_state_dict(own)
     return len(matched)
+
+
+def same_decoder_digests(network: Autoencoder, model_dir: Path) -> list[str]:
+    """The weights digests whose files `network` decodes when it holds the decoder of `model_dir`: that model's own
+    and those it records (`SAME_DECODER_KEY`). MapsqueezeError when the decoders differ (another architecture)."""
+    other, sha = load_network(model_dir)
+    own, theirs = network.decoder.state_dict(), other.decoder.state_dict()
+    if own.keys() != theirs.keys() or not all(
+            own[k].shape == theirs[k].shape and torch.equal(own[k].cpu(), theirs[k]) for k in own):
+        raise MapsqueezeError(f"--encoder-only: the decoder of {model_dir} differs from the {network.config.name} "
+                              "architecture's; pass a model of this rate point with --init")
+    return [sha, *other.config.extra.get(SAME_DECODER_KEY, [])]
 
 
 def weights_digest(network: torch.nn.Module) -> str:
@@ -240,8 +293,10 @@ def _rank_digests(process: _Process, network: torch.nn.Module) -> list[str]:
 
 def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainConfig, device: str = "cpu",
           resume: bool = True, init: Path | None = None, progress=None) -> dict:
-    """Train and keep `out_dir/best` (lowest validation Chamfer; lowest training Chamfer when the dataset has no
-    validation submaps) and `out_dir/last` (+ optimiser state) up to date. The one-cycle schedule spans
+    """Train and keep `out_dir/best` (lowest validation figure of cfg.objective, `OBJECTIVES`; lowest training
+    figure when the dataset has no validation submaps) and `out_dir/last` (+ optimiser state) up to date. With
+    cfg.encoder_only only the encoder of the `init` model trains, and the model records the digests whose files
+    its decoder reads (`SAME_DECODER_KEY`). The one-cycle schedule spans
     cfg.epochs, or cfg.max_steps, or (cfg.max_minutes) the steps that fit in the time budget at the speed of the
     first STEPS_BEFORE_RETIMING steps, whichever is fewest.
 
@@ -250,6 +305,10 @@ def train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCon
     averages the gradients of N x batch_size submaps; process 0 alone validates and writes; the summary lists
     every process's weights digest (`weights_digest`, identical by construction and checked).
     """
+    if cfg.objective not in OBJECTIVES:
+        raise MapsqueezeError(f"unknown objective {cfg.objective!r}; choose one of {', '.join(OBJECTIVES)}")
+    if cfg.encoder_only and init is None and not (resume and (Path(out_dir) / "last" / "train_state.pt").is_file()):
+        raise MapsqueezeError("--encoder-only trains the encoder of a model given by --init (its decoder kept)")
     process, dev = _join_process_group(device)
     if process.world == 1:
         return _train(dataset, Path(out_dir), model_config, cfg, dev, resume, init, progress, process)
@@ -276,7 +335,9 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
     network = build_model(model_config, seed=cfg.seed).to(dev)
     if init is not None:
         init_from(network, init)
-    optimizer = torch.optim.Adam(network.parameters(), lr=cfg.max_lr)
+        if cfg.encoder_only:  # files of the init model decode with this one
+            network.config.extra = {**network.config.extra, SAME_DECODER_KEY: same_decoder_digests(network, init)}
+    optimizer = torch.optim.Adam(trained_parameters(network, cfg), lr=cfg.max_lr)
     steps_per_epoch = max(1, len(train_set) // (cfg.batch_size * process.world))
     scheduler = one_cycle(optimizer, cfg.epochs * steps_per_epoch, cfg)
     state_path = out_dir / "last" / "train_state.pt"
@@ -284,7 +345,7 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
     if resume and state_path.is_file():
         network, _ = load_network(out_dir / "last")
         network.to(dev)
-        optimizer = torch.optim.Adam(network.parameters(), lr=cfg.max_lr)
+        optimizer = torch.optim.Adam(trained_parameters(network, cfg), lr=cfg.max_lr)
         scheduler = one_cycle(optimizer, cfg.epochs * steps_per_epoch, cfg)
         state = torch.load(state_path, map_location=dev, weights_only=True)
         optimizer.load_state_dict(state["optimizer"])
@@ -295,34 +356,40 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
         from torch.nn.parallel import DistributedDataParallel
 
         model = DistributedDataParallel(network, device_ids=[dev.index] if dev.type == "cuda" else None)
-    log, writer = _open_log(out_dir / "log.csv") if process.writer else (None, None)
+    metric = OBJECTIVES[cfg.objective]
+    log, writer = _open_log(out_dir / "log.csv", metric) if process.writer else (None, None)
     scale = model_config.map_size
+    dead_zone = _dead_zone(model_config)
     t0 = time.time()
     first_step, planned_steps = step, cfg.epochs * steps_per_epoch
     if cfg.max_steps:
         planned_steps = min(planned_steps, cfg.max_steps)
         retime_one_cycle(scheduler, planned_steps, cfg)
     stop = False
-    network.train()
+    _set_training_mode(network, cfg)
     for epoch in range(start_epoch, cfg.epochs):
         rng = np.random.default_rng([cfg.seed, epoch])
         order = rng.permutation(len(train_set))[: steps_per_epoch * cfg.batch_size * process.world]
         if process.world > 1:  # this process's share, with its own augmentation draws
             order, rng = order[process.rank::process.world], np.random.default_rng([cfg.seed, epoch, process.rank])
-        losses, chamfers = [], []
+        losses, figures = [], []
         optimizer.zero_grad()
         for i, idx in enumerate(order):
             pts = train_set[idx].points
             if cfg.augment:
                 pts = augment_points(pts, rng, scale)
-            pts = torch.from_numpy(select_points(pts, cfg.max_points, rng) / scale).to(dev)
+            inputs = torch.from_numpy(select_points(pts, cfg.max_points, rng) / scale).to(dev)
             last_pass = i % cfg.batch_size == cfg.batch_size - 1
             with _gradient_sync(model, last_pass):  # DDP averages the gradients once per step
-                output, intermediate, _ = model(pts)
-                loss, main = depoco_loss(pts, output, intermediate, cfg.beta)
+                output, intermediate, _ = model(inputs)
+                if cfg.objective == "chamfer":
+                    loss, main = depoco_loss(inputs, output, intermediate, cfg.beta)
+                else:  # against every point of the cloud, as refinement
+                    loss = main = mean_distance_loss(torch.from_numpy(pts / scale).to(dev), output,
+                                                     dead_zone=dead_zone)
                 (loss / cfg.batch_size).backward()
             losses.append(loss.item())
-            chamfers.append(main.item() * scale**2)
+            figures.append(main.item() * (scale**2 if cfg.objective == "chamfer" else scale))
             if last_pass:
                 optimizer.step()
                 optimizer.zero_grad()
@@ -344,23 +411,25 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
         if len(set(digests)) != 1:
             raise ModelError(f"the training processes' weights differ after epoch {epoch + 1}: {digests}")
         if process.writer:
-            # Without validation submaps the training Chamfer picks best/, and is named as such everywhere.
-            val = validate(network, val_set, dev) if val_set else float(np.mean(chamfers))
+            # Without validation submaps the training figure picks best/, and is named as such everywhere.
+            val = validate(network, val_set, dev, cfg.objective) if val_set else float(np.mean(figures))
             writer.writerow([epoch + 1, step, f"{scheduler.get_last_lr()[0]:.3e}", f"{np.mean(losses):.6f}",
-                             f"{np.mean(chamfers):.6f}", f"{val:.6f}" if val_set else "", f"{time.time() - t0:.1f}"])
+                             f"{np.mean(figures):.6f}", f"{val:.6f}" if val_set else "", f"{time.time() - t0:.1f}"])
             log.flush()
             if val < best:
                 best = val
                 network.config.extra = {**network.config.extra, "epochs": epoch + 1, "steps": step,
-                                        "val_chamfer_m2" if val_set else "train_chamfer_m2": val,
+                                        f"val_{metric}" if val_set else f"train_{metric}": val,
                                         "dataset": str(dataset), "beta": cfg.beta}
+                if cfg.objective != "chamfer" or cfg.encoder_only:
+                    network.config.extra.update(objective=cfg.objective, encoder_only=cfg.encoder_only)
                 save_model(network, out_dir / "best")
             save_model(network, out_dir / "last")
             torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch + 1,
                         "step": step, "best": best}, state_path)
         if stop:
             break
-    summary = {"best_val_chamfer_m2": best if val_set else None, "best_train_chamfer_m2": None if val_set else best,
+    summary = {f"best_val_{metric}": best if val_set else None, f"best_train_{metric}": None if val_set else best,
                "steps": step, "planned_steps": scheduler.total_steps, "minutes": (time.time() - t0) / 60,
                "train_config": asdict(cfg), "train_submaps": len(train_set), "val_submaps": len(val_set),
                "processes": process.world, "process_weights_sha256": _rank_digests(process, network)}
@@ -373,12 +442,12 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
     return summary
 
 
-def _open_log(path: Path):
+def _open_log(path: Path, metric: str):
     new_log = not path.is_file()
     log = open(path, "a", newline="")
     writer = csv.writer(log)
     if new_log:
-        writer.writerow(["epoch", "step", "lr", "train_loss", "train_chamfer_m2", "val_chamfer_m2", "seconds"])
+        writer.writerow(["epoch", "step", "lr", "train_loss", f"train_{metric}", f"val_{metric}", "seconds"])
     return log, writer
 
 

@@ -66,6 +66,10 @@ def train_cmd(
     density_a: Optional[float] = typer.Option(None, help="Density law a (default: the paper's 0.006)"),
     density_b: Optional[float] = typer.Option(None, help="Density law b (default: the paper's 1.764)"),
     val_limit: Optional[int] = typer.Option(None, min=1, help="Validate on at most this many submaps"),
+    objective: str = typer.Option("chamfer", help="chamfer (the paper's loss) or mean-distance (encode-time "
+                                  "refinement's: D_e against every point, with the model's dead zone)"),
+    encoder_only: bool = typer.Option(False, "--encoder-only", help="Train only the encoder of the --init model, "
+                                      "its decoder frozen (files decode with the same decoder)"),
     seed: int = typer.Option(0),
     device: str = typer.Option("cpu", help="cpu or cuda"),
     no_resume: bool = typer.Option(False, "--no-resume", help="Start over even if out/last exists"),
@@ -77,12 +81,13 @@ def train_cmd(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from mapsqueeze.model import ModelConfig
-    from mapsqueeze.train import TrainConfig, train, train_processes
+    from mapsqueeze.train import OBJECTIVES, TrainConfig, train, train_processes
 
     overrides = {k: v for k, v in (("density_a", density_a), ("density_b", density_b)) if v is not None}
     model_config = ModelConfig.for_rate(rate, **overrides)
     cfg = TrainConfig(epochs=epochs, batch_size=batch_size, max_lr=max_lr, beta=beta, max_steps=max_steps,
-                      max_minutes=max_minutes, val_limit=val_limit, seed=seed)
+                      max_minutes=max_minutes, val_limit=val_limit, seed=seed, objective=objective,
+                      encoder_only=encoder_only)
     if nproc > 1:  # progress: out/log.csv, one row per epoch
         summary = train_processes(nproc, dataset, out, model_config, cfg, device=device, resume=not no_resume,
                                   init=init)
@@ -95,11 +100,13 @@ def train_cmd(
                             progress=lambda e, s, l: bar.update(task, completed=s, epoch=e + 1, loss=l))
     if os.environ.get("RANK", "0") != "0":
         return
-    if summary["best_val_chamfer_m2"] is None:
-        best = (f"no validation submaps: best/ holds the lowest training Chamfer, "
-                f"{summary['best_train_chamfer_m2']:.5f} m^2,")
+    metric = OBJECTIVES[cfg.objective]
+    name, unit = ("Chamfer", "m^2") if cfg.objective == "chamfer" else ("mean distance", "m")
+    if summary[f"best_val_{metric}"] is None:
+        best = (f"no validation submaps: best/ holds the lowest training {name}, "
+                f"{summary[f'best_train_{metric}']:.5f} {unit},")
     else:
-        best = f"best validation Chamfer {summary['best_val_chamfer_m2']:.5f} m^2"
+        best = f"best validation {name} {summary[f'best_val_{metric}']:.5f} {unit}"
     console.print(f"{best} after {summary['steps']} steps ({summary['minutes']:.1f} min, {summary['processes']} "
                   f"process(es)) -> {out / 'best'}")
 
@@ -111,12 +118,17 @@ def models_cmd():
     from mapsqueeze.model.shipped import SHIPPED_DIR
 
     table = Table(title="shipped models")
-    for col in ("name", "r_s (m)", "upsampling", "val Chamfer (m^2)", "last training run (history: model card)"):
+    for col in ("name", "r_s (m)", "upsampling", "validation", "last training run (history: model card)"):
         table.add_column(col)
     for name in shipped_models():
         network, _ = load_network(SHIPPED_DIR / name)
         c = network.config
-        table.add_row(name, f"{c.subsampling_dist:g}", "x".join(map(str, c.upsampling_factors)),
-                      f"{c.extra.get('val_chamfer_m2', float('nan')):.4f}",
-                      f"{c.extra.get('steps', '?')} steps on {Path(str(c.extra.get('dataset', '?'))).name}")
+        if "val_mean_distance_m" in c.extra:
+            validation = f"mean distance {c.extra['val_mean_distance_m']:.4f} m"
+        else:
+            validation = f"Chamfer {c.extra.get('val_chamfer_m2', float('nan')):.4f} m^2"
+        run = f"{c.extra.get('steps', '?')} steps on {Path(str(c.extra.get('dataset', '?'))).name}"
+        if c.extra.get("encoder_only"):
+            run += " (encoder only)"
+        table.add_row(name, f"{c.subsampling_dist:g}", "x".join(map(str, c.upsampling_factors)), validation, run)
     console.print(table)

@@ -31,6 +31,11 @@ falls by 0.012 and the IoU difference by 0.0055 on average, the same rate points
 IoU alone (0): for them no variant measured met more rate points (the bits alone made KITTI e0 and e1 worse on both
 metrics; credits for extra points trade IoU, which most of their rate points lack, for D_e)."""
 
+SAME_DECODER_KEY = "same_decoder_sha256"
+"""Key of `ModelConfig.extra`: the weights digests of earlier versions of this model with the same decoder (their
+encoder retrained: `train --encoder-only` records the --init model's digest and its list), whose files this model
+decodes (`decompress.check_model`)."""
+
 
 @dataclass
 class ModelConfig:
