@@ -154,6 +154,35 @@ def test_a_signal_while_tiles_are_coded_gives_one_line_and_removes_temporary_fil
 SIGNAL_WORDS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}
 
 
+def test_the_entry_point_runs_in_another_thread_and_leaves_the_signal_handlers_as_it_found_them(monkeypatch, capsys):
+    """main() called from a thread other than the main one (an application running the CLI in a worker thread),
+    where Python refuses to set signal handlers, runs the command and leaves SIGINT and SIGTERM to the main thread's
+    handlers; in the main thread the handlers it replaced are restored."""
+    import threading
+
+    from mapsqueeze.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["mapsqueeze", "models"])
+    before = {signum: signal.getsignal(signum) for signum in SIGNAL_WORDS}
+    ended = []
+
+    def run() -> None:
+        try:
+            main()
+        except BaseException as exc:  # noqa: BLE001  (SystemExit is the expected end)
+            ended.append(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    thread.join()
+    assert len(ended) == 1 and isinstance(ended[0], SystemExit) and ended[0].code == 0, ended
+    assert "shipped models" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    assert exit_info.value.code == 0
+    assert {signum: signal.getsignal(signum) for signum in SIGNAL_WORDS} == before
+
+
 def map_file_of(path: Path, points: np.ndarray) -> Path:
     write_points(path, points + UTM)
     return path

@@ -9,6 +9,7 @@ folders and partial outputs are removed) and end with one line, `error: interrup
 
 import signal
 import sys
+import threading
 
 import typer
 
@@ -42,8 +43,11 @@ def _on_signal(signum, frame) -> None:
 
 def _install_signal_handlers() -> dict:
     """Route SIGINT and SIGTERM to `_on_signal`, except a signal the parent set to be ignored (e.g. SIGINT of a
-    command started in the background); returns the handlers replaced."""
+    command started in the background); returns the handlers replaced. None outside the main thread (an
+    application running the CLI in a worker thread), where Python delivers no signal and sets no handler."""
     replaced = {}
+    if threading.current_thread() is not threading.main_thread():
+        return replaced
     for signum in _SIGNAL_MESSAGES:
         if signal.getsignal(signum) is not signal.SIG_IGN:
             replaced[signum] = signal.signal(signum, _on_signal)
