@@ -229,6 +229,27 @@ def test_a_shipped_model_of_other_weights_needs_a_model_of_its_prefix_and_an_unk
         mapsqueeze.info(with_head_crc(reserved))
 
 
+def test_a_file_of_an_earlier_shipped_model_with_the_same_decoder_decodes_and_info_says_so(map_points, run_cli,
+                                                                                            tmp_path):
+    """A file the earlier e1 wrote (its digest prefix; the shipped e1 lists that digest, its encoder alone
+    retrained) decodes without --model to the points the shipped e1's own file of the same payloads gives, and
+    `info` names the shipped model instead of asking for --model PATH."""
+    from mapsqueeze.model import load_model
+    from mapsqueeze.model.config import SAME_DECODER_KEY
+
+    (earlier,) = load_model("e1").config.extra[SAME_DECODER_KEY]
+    data = mapsqueeze.compress(map_points, model="e1", precision="q", workers=1)
+    start, _, _ = head_layout(data)
+    old = bytearray(data)
+    old[start + 4:start + 12] = bytes.fromhex(earlier)[:8]
+    old = with_head_crc(old)
+    assert mapsqueeze.info(old).weights_sha256 == earlier[:16]
+    assert np.array_equal(mapsqueeze.decompress(old, workers=1), mapsqueeze.decompress(data, workers=1))
+    (tmp_path / "old.msq").write_bytes(old)
+    code, out, _ = run_cli("info", str(tmp_path / "old.msq"))
+    assert code == 0 and "an earlier version of the shipped model" in out and "--model PATH" not in out
+
+
 def test_good_file_still_decodes(compressed, model, map_points):
     assert len(mapsqueeze.decompress(compressed, model=model, n_points=len(map_points))) == len(map_points)
 

@@ -324,6 +324,15 @@ def test_bad_sizes_are_a_model_error(bad):
         ModelConfig.for_rate("e0", **bad)
 
 
+@pytest.mark.parametrize("listed", [5, "de98f0822dfa97e5", ["de98f0822dfa97e5"], [5], {"a": 1}])
+def test_the_digests_of_earlier_models_with_the_same_decoder_must_be_a_list_of_sha256s(listed):
+    from mapsqueeze.model.config import SAME_DECODER_KEY
+
+    with pytest.raises(ModelError, match=SAME_DECODER_KEY):
+        ModelConfig.for_rate("e1", extra={SAME_DECODER_KEY: listed})
+    assert ModelConfig.for_rate("e1", extra={SAME_DECODER_KEY: ["ab" * 32]}).extra[SAME_DECODER_KEY] == ["ab" * 32]
+
+
 def test_config_json_round_trip():
     config = ModelConfig.for_rate("e2")
     assert ModelConfig.from_json(config.to_json()) == config

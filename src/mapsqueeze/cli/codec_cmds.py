@@ -150,11 +150,17 @@ def decompress_command(
 @app.command("info")
 def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq file")) -> None:
     """Show a .msq file's model, tiles, sizes, bits per point and origin."""
-    from mapsqueeze.model.shipped import shipped_weights_sha256
+    from mapsqueeze.model.config import ModelConfig, decodes_files_of
+    from mapsqueeze.model.shipped import CONFIG_FILE, SHIPPED_DIR, shipped_weights_sha256
 
     summary = api.info(msq)
-    if shipped_weights_sha256(summary.model_id) == summary.weights_sha256:
+    shipped = shipped_weights_sha256(summary.model_id)
+    if shipped == summary.weights_sha256:
         model = f"{summary.model_id} (shipped; weights sha256 {summary.weights_sha256[:16]}...)"
+    elif shipped is not None and decodes_files_of(
+            shipped, ModelConfig.load(SHIPPED_DIR / summary.model_id / CONFIG_FILE), summary.weights_sha256):
+        model = (f"{summary.model_id} (an earlier version of the shipped model, weights sha256 "
+                 f"{summary.weights_sha256[:16]}...: the shipped {summary.model_id} has the same decoder)")
     else:
         model = (f"custom, named {summary.model_id!r} (weights sha256 {summary.weights_sha256[:16]}..., not a "
                  "shipped model: decompress needs --model PATH)")

@@ -100,11 +100,10 @@ def target_counts(header: Header, entries: list[TileEntry], density: float | Non
 def check_model(model, header: Header, name: str) -> None:
     """Refuse a model whose weights differ from the ones the file was compressed with (a version 7 file naming a
     shipped model of other weights than this build's holds only the digest's prefix), unless those are an earlier
-    version of the model with the same decoder (`config.SAME_DECODER_KEY`: only the encoder was retrained)."""
-    from mapsqueeze.model.config import SAME_DECODER_KEY
+    version of the model with the same decoder (`config.decodes_files_of`: only the encoder was retrained)."""
+    from mapsqueeze.model.config import decodes_files_of
 
-    digests = [model.weights_sha256, *model.config.extra.get(SAME_DECODER_KEY, [])]
-    if not any(str(digest).startswith(header.weights_sha256) for digest in digests):
+    if not decodes_files_of(model.weights_sha256, model.config, header.weights_sha256):
         raise ModelError(
             f"{name} was compressed with model {header.model_id!r} (weights sha256 {header.weights_sha256[:16]}...), "
             f"but the given model {model.model_id!r} has weights {model.weights_sha256[:16]}...; "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,9 +33,16 @@ IoU alone (0): for them no variant measured met more rate points (the bits alone
 metrics; credits for extra points trade IoU, which most of their rate points lack, for D_e)."""
 
 SAME_DECODER_KEY = "same_decoder_sha256"
-"""Key of `ModelConfig.extra`: the weights digests of earlier versions of this model with the same decoder (their
-encoder retrained: `train --encoder-only` records the --init model's digest and its list), whose files this model
-decodes (`decompress.check_model`)."""
+"""Key of `ModelConfig.extra`: the weights digests (a list of SHA-256 hex strings) of earlier versions of this model
+with the same decoder (their encoder retrained: `train --encoder-only` records the --init model's digest and its
+list), whose files this model decodes (`decodes_files_of`)."""
+
+
+def decodes_files_of(weights_sha256: str, config: "ModelConfig", file_digest: str) -> bool:
+    """Whether the model of these weights and config decodes a file whose header gives `file_digest` (a SHA-256, or
+    the prefix a version 7 file naming a shipped model holds): it is its own weights' or one the config lists under
+    SAME_DECODER_KEY (`decompress.check_model`, `mapsqueeze info`)."""
+    return any(digest.startswith(file_digest) for digest in [weights_sha256, *config.extra.get(SAME_DECODER_KEY, [])])
 
 
 @dataclass
@@ -88,6 +96,11 @@ class ModelConfig:
         if not isinstance(self.name, str) or not isinstance(self.extra, dict):
             raise ModelError(f"model config: name must be a string and extra an object, got {self.name!r} and "
                              f"{type(self.extra).__name__}")
+        same_decoder = self.extra.get(SAME_DECODER_KEY, [])
+        if not isinstance(same_decoder, list) or not all(
+                isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest) for digest in same_decoder):
+            raise ModelError(f"model config: extra.{SAME_DECODER_KEY} must be a list of SHA-256 hex digests, got "
+                             f"{same_decoder!r}")
         if not (len(self.encoder_dims) == len(self.subsampling_factors) == len(self.max_neighbors)):
             raise ModelError("encoder_dims, subsampling_factors and max_neighbors must have the same length")
         if any(k < 1 for k in self.upsampling_factors):
