@@ -161,3 +161,23 @@ def test_encoder_only_needs_an_init_model_of_its_architecture_and_an_unknown_obj
     code, _, err = run_cli("train", str(train_only_dataset), "-o", str(tmp_path / "c"), "--rate", "e2",
                            "--init", str(SHIPPED_DIR / "e1"), "--encoder-only", "--max-steps", "1")
     assert code != 0 and "the decoder of" in err and "differs from the e2 architecture's" in err
+
+
+@pytest.mark.parametrize("changed", [{"map_size": 16.0}, {"decoder_kernel_radius": 0.1}])
+def test_encoder_only_refuses_an_init_model_whose_config_decodes_its_weights_otherwise(train_only_dataset, tmp_path,
+                                                                                      changed):
+    """The decoder's weights alone do not fix what a file decodes to: an init model whose config scales or offsets
+    the same weights otherwise is refused before training, so no model lists the digest of files it would decode
+    to other points."""
+    import dataclasses
+
+    from mapsqueeze.errors import MapsqueezeError
+    from mapsqueeze.model import ModelConfig, build_model, save_model
+    from mapsqueeze.train import train
+
+    config = ModelConfig.for_rate("e1", tile_size=(8.0, 8.0, 4.0), map_size=8.0, max_input_points=2000)
+    init = save_model(build_model(config, seed=1), tmp_path / "init")
+    cfg = TrainConfig(epochs=1, batch_size=1, max_steps=1, encoder_only=True)
+    (setting,) = changed
+    with pytest.raises(MapsqueezeError, match=f"differs from the e1 architecture's \\(settings {setting}\\)"):
+        train(train_only_dataset, tmp_path / "run", dataclasses.replace(config, **changed), cfg, init=init)

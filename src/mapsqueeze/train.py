@@ -192,15 +192,25 @@ def init_from(network: Autoencoder, source_dir: Path) -> int:
     return len(matched)
 
 
+DECODING_SETTINGS = ("map_size", "tile_size", "subsampling_dist", "embedding_dim", "decoder_dim", "decoder_hidden",
+                     "decoder_kernel_radius", "upsampling_factors", "leaky_relu_slope")
+"""The `ModelConfig` fields a decode depends on besides the decoder's weights (the scale of the normalised
+coordinates, the grid, the decoder's shape, offsets and activation)."""
+
+
 def same_decoder_digests(network: Autoencoder, model_dir: Path) -> list[str]:
     """The weights digests whose files `network` decodes when it holds the decoder of `model_dir`: that model's own
-    and those it records (`SAME_DECODER_KEY`). MapsqueezeError when the decoders differ (another architecture)."""
+    and those it records (`SAME_DECODER_KEY`). MapsqueezeError when the decoders differ (another architecture, or
+    weights that would decode otherwise under this config's DECODING_SETTINGS)."""
     other, sha = load_network(model_dir)
     own, theirs = network.decoder.state_dict(), other.decoder.state_dict()
-    if own.keys() != theirs.keys() or not all(
+    differing = [name for name in DECODING_SETTINGS
+                 if getattr(network.config, name) != getattr(other.config, name)]
+    if differing or own.keys() != theirs.keys() or not all(
             own[k].shape == theirs[k].shape and torch.equal(own[k].cpu(), theirs[k]) for k in own):
+        settings = f" (settings {', '.join(differing)})" if differing else ""
         raise MapsqueezeError(f"--encoder-only: the decoder of {model_dir} differs from the {network.config.name} "
-                              "architecture's; pass a model of this rate point with --init")
+                              f"architecture's{settings}; pass a model of this rate point with --init")
     return [sha, *other.config.extra.get(SAME_DECODER_KEY, [])]
 
 

@@ -72,7 +72,8 @@ class ModelConfig:
     leaky_relu_slope: float = 0.01
     batchnorm_momentum: float = 0.1
     # Encode-time refinement (`model.refine`): distances within this dead zone (m) do not count in its objective
-    # (each distance d counts as max(d - dead zone, 0)); 0: D_e itself. Not used by training or decoding.
+    # (each distance d counts as max(d - dead zone, 0)); 0: D_e itself. Also the dead zone of training's
+    # mean-distance objective (`train.OBJECTIVES`); not used by decoding.
     refine_dead_zone_m: float = 0.0
     # Patch-choice search of the encoder (`codec.postfilter.search_patch_choices`): each extra point per point of a
     # patch's option counts as this many more shared IoU voxels, times the share of the option's voxels the tile's
