@@ -1,6 +1,7 @@
 """Training runs a new user starts: no validation submaps, a time budget, the files written; two DDP processes."""
 
 import csv
+import dataclasses
 import json
 import stat
 import subprocess
@@ -181,3 +182,22 @@ def test_encoder_only_refuses_an_init_model_whose_config_decodes_its_weights_oth
     (setting,) = changed
     with pytest.raises(MapsqueezeError, match=f"differs from the e1 architecture's \\(settings {setting}\\)"):
         train(train_only_dataset, tmp_path / "run", dataclasses.replace(config, **changed), cfg, init=init)
+
+
+def test_a_run_resumes_only_with_its_objective_and_encoder_only_setting(train_only_dataset, tmp_path):
+    """`best` and the log compare figures of one objective, and the optimiser state holds the parameters of one
+    setting: a resume with another --objective or --encoder-only is one error line, not a mixed run or a
+    traceback from the optimiser's state."""
+    from mapsqueeze.errors import MapsqueezeError
+    from mapsqueeze.model import ModelConfig, build_model, save_model
+    from mapsqueeze.train import train
+
+    config = ModelConfig.for_rate("e1", tile_size=(8.0, 8.0, 4.0), map_size=8.0, max_input_points=2000)
+    init = save_model(build_model(config, seed=1), tmp_path / "init")
+    out = tmp_path / "run"
+    cfg = TrainConfig(epochs=1, batch_size=1, max_steps=1, encoder_only=True, objective="mean-distance")
+    train(train_only_dataset, out, config, cfg, init=init)
+    for other in ({"objective": "chamfer"}, {"encoder_only": False}):
+        with pytest.raises(MapsqueezeError, match="holds a run of objective mean-distance, encoder only: resume it"):
+            train(train_only_dataset, out, config, dataclasses.replace(cfg, **other), init=init)
+    assert train(train_only_dataset, out, config, cfg)["steps"] == 1  # the same settings resume (nothing left)

@@ -353,11 +353,15 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
     state_path = out_dir / "last" / "train_state.pt"
     start_epoch, step, best = 0, 0, math.inf
     if resume and state_path.is_file():
+        state = torch.load(state_path, map_location=dev, weights_only=True)
+        run = (state.get("objective", "chamfer"), bool(state.get("encoder_only", False)))  # older states: the paper's
+        if run != (cfg.objective, cfg.encoder_only):
+            raise MapsqueezeError(f"{out_dir} holds a run of objective {run[0]}{', encoder only' * run[1]}: resume it "
+                                  "with the same --objective and --encoder-only, or start over with --no-resume")
         network, _ = load_network(out_dir / "last")
         network.to(dev)
         optimizer = torch.optim.Adam(trained_parameters(network, cfg), lr=cfg.max_lr)
         scheduler = one_cycle(optimizer, cfg.epochs * steps_per_epoch, cfg)
-        state = torch.load(state_path, map_location=dev, weights_only=True)
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         start_epoch, step, best = int(state["epoch"]), int(state["step"]), float(state["best"])
@@ -436,7 +440,8 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
                 save_model(network, out_dir / "best")
             save_model(network, out_dir / "last")
             torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch + 1,
-                        "step": step, "best": best}, state_path)
+                        "step": step, "best": best, "objective": cfg.objective, "encoder_only": cfg.encoder_only},
+                       state_path)
         if stop:
             break
     summary = {f"best_val_{metric}": best if val_set else None, f"best_train_{metric}": None if val_set else best,
