@@ -27,7 +27,7 @@ import torch
 from mapsqueeze.errors import MapsqueezeError, ModelError
 from mapsqueeze.geometry.threads import set_threads
 from mapsqueeze.model import Autoencoder, ModelConfig, build_model, load_network, save_model
-from mapsqueeze.model.config import SAME_DECODER_KEY
+from mapsqueeze.model.config import DECODING_SETTINGS, SAME_DECODER_KEY
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss
 
 OBJECTIVES = {"chamfer": "chamfer_m2", "mean-distance": "mean_distance_m"}
@@ -172,12 +172,6 @@ def trained_parameters(network: Autoencoder, cfg: TrainConfig) -> list[torch.nn.
     return list(network.encoder.parameters())
 
 
-def _set_training_mode(network: Autoencoder, cfg: TrainConfig) -> None:
-    """Training mode, or with cfg.encoder_only eval mode throughout: the encoder's batch norms keep the running
-    statistics the decoder was trained with, so training computes what compression does."""
-    network.train(not cfg.encoder_only)
-
-
 def init_from(network: Autoencoder, source_dir: Path) -> int:
     """Copy every learned tensor whose name and shape match from another model (e.g. another rate point).
 
@@ -192,20 +186,12 @@ def init_from(network: Autoencoder, source_dir: Path) -> int:
     return len(matched)
 
 
-DECODING_SETTINGS = ("map_size", "tile_size", "subsampling_dist", "embedding_dim", "decoder_dim", "decoder_hidden",
-                     "decoder_kernel_radius", "upsampling_factors", "leaky_relu_slope")
-"""The `ModelConfig` fields a decode depends on besides the decoder's weights (the scale of the normalised
-coordinates, the grid, the decoder's shape, offsets and activation)."""
-
-
 def same_decoder_digests(network: Autoencoder, model_dir: Path) -> list[str]:
     """The weights digests whose files `network` decodes when it holds the decoder of `model_dir`: that model's own
-    and those it records (`SAME_DECODER_KEY`). MapsqueezeError when the decoders differ (another architecture, or
-    weights that would decode otherwise under this config's DECODING_SETTINGS)."""
+    and those it records (`SAME_DECODER_KEY`). MapsqueezeError when the decoders or their DECODING_SETTINGS differ."""
     other, sha = load_network(model_dir)
     own, theirs = network.decoder.state_dict(), other.decoder.state_dict()
-    differing = [name for name in DECODING_SETTINGS
-                 if getattr(network.config, name) != getattr(other.config, name)]
+    differing = [name for name in DECODING_SETTINGS if getattr(network.config, name) != getattr(other.config, name)]
     if differing or own.keys() != theirs.keys() or not all(
             own[k].shape == theirs[k].shape and torch.equal(own[k].cpu(), theirs[k]) for k in own):
         settings = f" (settings {', '.join(differing)})" if differing else ""
@@ -380,7 +366,9 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
         planned_steps = min(planned_steps, cfg.max_steps)
         retime_one_cycle(scheduler, planned_steps, cfg)
     stop = False
-    _set_training_mode(network, cfg)
+    # With cfg.encoder_only eval mode throughout: the encoder's batch norms keep the running statistics the decoder
+    # was trained with, so training computes what compression does.
+    network.train(not cfg.encoder_only)
     for epoch in range(start_epoch, cfg.epochs):
         rng = np.random.default_rng([cfg.seed, epoch])
         order = rng.permutation(len(train_set))[: steps_per_epoch * cfg.batch_size * process.world]
@@ -441,7 +429,7 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
             save_model(network, out_dir / "last")
             torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch + 1,
                         "step": step, "best": best, "objective": cfg.objective, "encoder_only": cfg.encoder_only},
-                       state_path)
+                       state_path)  # a resume needs the same objective and encoder_only
         if stop:
             break
     summary = {f"best_val_{metric}": best if val_set else None, f"best_train_{metric}": None if val_set else best,

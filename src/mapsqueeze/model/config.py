@@ -32,6 +32,12 @@ falls by 0.012 and the IoU difference by 0.0055 on average, the same rate points
 IoU alone (0): for them no variant measured met more rate points (the bits alone made KITTI e0 and e1 worse on both
 metrics; credits for extra points trade IoU, which most of their rate points lack, for D_e)."""
 
+DECODING_SETTINGS = ("map_size", "tile_size", "subsampling_dist", "embedding_dim", "decoder_dim", "decoder_hidden",
+                     "decoder_kernel_radius", "upsampling_factors", "leaky_relu_slope")
+"""The `ModelConfig` fields a decode depends on besides the decoder's weights (the scale of the normalised
+coordinates, the grid, the decoder's shape, offsets and activation): equal in a model and those it lists under
+SAME_DECODER_KEY (`train.same_decoder_digests`)."""
+
 SAME_DECODER_KEY = "same_decoder_sha256"
 """Key of `ModelConfig.extra`: the weights digests (a list of SHA-256 hex strings) of earlier versions of this model
 with the same decoder (their encoder retrained: `train --encoder-only` records the --init model's digest and its
