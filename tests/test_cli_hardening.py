@@ -108,6 +108,13 @@ main()
 """`mapsqueeze ARGS` that writes the name of the thread running a tile job to $TILE_JOB_MARK as each job starts."""
 
 
+def _signals_as_in_a_terminal():
+    """Default SIGINT and SIGTERM in the child: a shell that starts the test run in the background (as CI may) leaves
+    SIGINT ignored, and the command line rightly keeps an ignored signal ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("command, signum, workers", [("compress", signal.SIGINT, 2), ("compress", signal.SIGTERM, 1),
                                                       ("decompress", signal.SIGINT, 2)],
@@ -133,7 +140,8 @@ def test_a_signal_while_tiles_are_coded_gives_one_line_and_removes_temporary_fil
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "TMPDIR": str(spill), "TILE_JOB_MARK": str(mark)}
     process = subprocess.Popen([sys.executable, "-c", TILE_JOB_MARKED_CLI, command, *map(str, args),
                                 "--workers", str(workers)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                               preexec_fn=_signals_as_in_a_terminal)
     deadline = time.monotonic() + 300
     while not mark.exists() and time.monotonic() < deadline and process.poll() is None:
         time.sleep(0.05)
