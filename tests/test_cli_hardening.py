@@ -436,3 +436,120 @@ def test_a_msq_cut_anywhere_is_one_line_for_info_and_decompress(run_cli, tiny_mo
             assert (code, out) == (2, "") and err.startswith(f"error: {cut}: ") and err.count("\n") == 1, (length, err)
             assert "truncated" in err or "too short" in err, (length, err)
         assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.msq", "map.msq", "map.ply"]
+
+
+# --- output paths that would destroy data, and a Ctrl-C while the command line loads -----------------------------
+
+@pytest.mark.parametrize("name", ["map.ply", "map.las", "map", "map.msq.tmp"])
+def test_compress_refuses_an_output_name_that_decompress_would_read_as_a_point_cloud(run_cli, map_file, tmp_path,
+                                                                                       monkeypatch, name):
+    """`compress MAP -o out.ply` would write a .msq container under a point-cloud name (decompress picks its output's
+    format by the extension): one line, nothing written, before any work; `.MSQ` is a .msq name."""
+    monkeypatch.setattr(api, "compress_chunks", lambda *a, **k: pytest.fail("compressed before the name check"))
+    code, out, err = run_cli("compress", str(map_file), "-o", str(tmp_path / name))
+    assert (code, out) == (2, "") and err == (f"error: {tmp_path / name}: compress writes a .msq container; give an "
+                                              "output name ending in .msq\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.ply"]
+
+
+def test_compress_accepts_an_upper_case_msq_name(run_cli, map_file, tiny_model_dir, tmp_path):
+    code, _, err = run_cli("compress", str(map_file), "-o", str(tmp_path / "MAP.MSQ"), "--model", str(tiny_model_dir))
+    assert code == 0, err
+    assert mapsqueeze.info(tmp_path / "MAP.MSQ").n_points == 3000
+
+
+def _same_file_cases(tmp_path: Path, map_file: Path, tiny_model_dir: Path) -> dict:
+    """command line -> the input it must leave untouched, for each way an output can be an input."""
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
+    os.link(map_file, tmp_path / "hard-link.msq")
+    (tmp_path / "sym-link.msq").symlink_to(map_file.name)
+    return {
+        "compress onto a hard link": (["compress", map_file, "-o", tmp_path / "hard-link.msq"], map_file),
+        "compress onto a symbolic link": (["compress", map_file, "-o", tmp_path / "sym-link.msq"], map_file),
+        "compress --format onto itself": (["compress", msq, "--format", "ply", "-o", tmp_path / "." / "map.msq"], msq),
+        "decompress --format onto itself": (["decompress", msq, "--format", "ply", "-o", msq], msq),
+        "convert onto itself": (["convert", map_file, tmp_path / "." / "map.ply"], map_file),
+        "view onto the original": (["view", msq, "--original", map_file, "-o", map_file], map_file),
+    }
+
+
+@pytest.mark.parametrize("case", ["compress onto a hard link", "compress onto a symbolic link",
+                                  "compress --format onto itself", "decompress --format onto itself",
+                                  "convert onto itself", "view onto the original"])
+def test_an_output_path_that_is_the_input_is_refused_and_the_input_kept(run_cli, map_file, tiny_model_dir, tmp_path,
+                                                                         case):
+    args, source = _same_file_cases(tmp_path, map_file, tiny_model_dir)[case]
+    if args[0] in ("compress", "decompress", "view"):
+        args += ["--model", tiny_model_dir]
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in tmp_path.iterdir()}
+    code, out, err = run_cli(*map(str, args))
+    assert (code, out) == (2, "") and err.startswith("error: ") and err.count("\n") == 1, err
+    assert f"is the input file {source}; give another output path" in err
+    assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in tmp_path.iterdir()} == before
+    assert (tmp_path / "sym-link.msq").is_symlink()
+
+
+def test_the_api_refuses_to_write_its_input(map_file, tiny_model_dir, tmp_path):
+    from mapsqueeze.errors import OutputError
+
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
+    before = map_file.read_bytes(), msq.read_bytes()
+    with pytest.raises(OutputError, match="is the input file"):
+        mapsqueeze.compress_file(map_file, map_file, str(tiny_model_dir))
+    with pytest.raises(OutputError, match="is the input file"):
+        mapsqueeze.decompress_file(msq, msq, model=str(tiny_model_dir), format="ply")
+    assert (map_file.read_bytes(), msq.read_bytes()) == before
+
+
+@pytest.mark.parametrize("command", ["compress", "decompress", "convert", "write_points"])
+def test_an_output_that_is_a_named_pipe_is_refused_not_replaced(run_cli, map_file, tiny_model_dir, tmp_path, command):
+    """An atomic write replaces its target: a named pipe (or a device such as /dev/null, which root could replace)
+    would be removed and a regular file left in its place."""
+    from mapsqueeze.errors import OutputError
+
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
+    pipe = tmp_path / ("pipe.msq" if command == "compress" else "pipe.ply")
+    os.mkfifo(pipe)
+    expected = f"{pipe}: is not a regular file (a device, pipe or socket); give a file name"
+    if command == "write_points":
+        with pytest.raises(OutputError, match="is not a regular file"):
+            write_points(pipe, ground())
+    else:
+        args = {"compress": ["compress", map_file, "-o", pipe, "--model", tiny_model_dir],
+                "decompress": ["decompress", msq, "-o", pipe, "--model", tiny_model_dir],
+                "convert": ["convert", map_file, pipe]}[command]
+        code, out, err = run_cli(*map(str, args))
+        assert (code, out, err) == (2, "", f"error: {expected}\n")
+    assert pipe.is_fifo() and sorted(p.name for p in tmp_path.iterdir()) == ["map.msq", "map.ply", pipe.name]
+
+
+def test_an_output_through_a_symbolic_link_keeps_the_link(run_cli, map_file, tiny_model_dir, tmp_path):
+    """The file the link names is replaced (atomically, beside it); the link stays a link."""
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / "v1.msq").write_bytes(b"old")
+    link = tmp_path / "latest.msq"
+    link.symlink_to(Path("store") / "v1.msq")
+    code, _, err = run_cli("compress", str(map_file), "-o", str(link), "--model", str(tiny_model_dir))
+    assert code == 0, err
+    assert link.is_symlink() and os.readlink(link) == str(Path("store") / "v1.msq")
+    assert (tmp_path / "store" / "v1.msq").read_bytes() == mapsqueeze.compress(read_points(map_file),
+                                                                                 str(tiny_model_dir))
+    assert sorted(p.name for p in (tmp_path / "store").iterdir()) == ["v1.msq"]
+
+
+def test_bbox_and_point_count_errors_are_one_plain_line(run_cli, map_file, tiny_model_dir, tmp_path):
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
+    code, _, err = run_cli("decompress", str(msq), "-o", str(tmp_path / "x.ply"), "--bbox", "10,10,10,0,0,1e3")
+    assert code == 2 and err == ("error: bbox must be six finite numbers x0,y0,z0,x1,y1,z1 with x0<=x1, y0<=y1, "
+                                 "z0<=z1, got 10,10,10,0,0,1000\n")
+    data = msq.read_bytes()
+    with pytest.raises(MapsqueezeError, match=r"got \('a', 1, 2, 3, 4, 5\)"):
+        mapsqueeze.decompress(data, model=str(tiny_model_dir), bbox=("a", 1, 2, 3, 4, 5))
+    for count in (10.5, True, 0):
+        with pytest.raises(MapsqueezeError, match=f"point count must be an integer of at least 1, got {count}"):
+            mapsqueeze.decompress(data, model=str(tiny_model_dir), n_points=count)
+    assert len(mapsqueeze.decompress(data, model=str(tiny_model_dir), n_points=np.int64(7))) == 7

@@ -309,7 +309,7 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
     """
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     format_name(input_path, format)
-    check_output_path(output_path)
+    check_output_path(output_path, inputs=(input_path,))
     target = _target(max_error, bpp, fallback, post_filter)
     model = _models(model, target)
     dropped = [0]
@@ -356,7 +356,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
     dask_scheduler as in `compress` (one tile in memory per worker).
     """
     output_format = format_name(output_path, format)  # an unknown format or an unwritable path fails before decoding
-    check_output_path(output_path)
+    check_output_path(output_path, inputs=(input_path,))
     summary = info(input_path)
     schema = summary.attribute_schema
     specs = schema.specs if schema and attributes else ()

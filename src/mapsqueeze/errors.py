@@ -14,7 +14,8 @@ class InvalidPointCloudError(MapsqueezeError):
 
 
 class OutputError(MapsqueezeError):
-    """An output file cannot be written: its folder is missing or read-only, or a directory has its name."""
+    """An output file cannot be written: its folder is missing or read-only, a directory, device or pipe has its
+    name, or it is the command's input."""
 
 
 class ContainerError(MapsqueezeError):

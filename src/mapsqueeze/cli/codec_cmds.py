@@ -15,6 +15,9 @@ from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
 from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE
 from mapsqueeze.codec.modes import POST_FILTER_MODES
+from mapsqueeze.errors import OutputError
+
+MSQ_SUFFIX = ".msq"
 
 
 @contextmanager
@@ -55,7 +58,8 @@ def _dask_option() -> typer.models.OptionInfo:
 @app.command("compress")
 def compress_command(
     map_path: Path = typer.Argument(..., metavar="MAP", help="point-cloud map (.ply .pcd .las .laz .bin .npy)"),
-    output: Path = typer.Option(..., "-o", "--output", help=".msq file to write (atomically)"),
+    output: Path = typer.Option(..., "-o", "--output", help=".msq file to write (atomically; the name must end in "
+                                                           ".msq)"),
     model: str | None = typer.Option(None, "--model", help=f"e0|e1|e2|e3 or a model directory (default "
                                      f"{api.DEFAULT_MODEL}; with --max-error or --bpp: the best of e0..e3)"),
     precision: str = typer.Option(api.DEFAULT_PRECISION, "--precision",
@@ -91,6 +95,8 @@ def compress_command(
     """Compress a map: 40 x 40 x 15 m tiles, each stored with the coding its mode decision picks (the network's
     embedding, raw points or an octree); attributes (intensity, colour, labels, ...) on a voxel grid per tile; the
     LAS header's metadata (CRS) is kept."""
+    if output.suffix.lower() != MSQ_SUFFIX and not output.is_dir():  # decompress reads the extension as the format
+        raise OutputError(f"{output}: compress writes a .msq container; give an output name ending in {MSQ_SUFFIX}")
     if max_error is not None and bpp is not None:
         raise typer.BadParameter("give --max-error or --bpp, not both")
     if post_filter not in POST_FILTER_MODES:

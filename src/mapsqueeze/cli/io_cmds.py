@@ -18,7 +18,7 @@ def convert(
     """Convert a point cloud between formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD, LAS/LAZ, .npy), keeping
     every attribute and the LAS header's metadata the output format can hold."""
     format_name(output_path, out_format)  # a bad output fails before the input is read
-    check_output_path(output_path)
+    check_output_path(output_path, inputs=(input_path,))
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
     warn_dropped(cloud.attributes, output_path, out_format)

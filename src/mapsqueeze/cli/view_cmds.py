@@ -29,7 +29,7 @@ def view_command(
     from mapsqueeze.view import ViewInput, load_cloud, write_view
 
     output = output or msq.with_suffix(".html")
-    check_output_path(output)
+    check_output_path(output, inputs=(msq,) if original is None else (msq, original))
     if not msq.is_file():
         raise MapsqueezeError(f"{msq}: no such file")
     view = ViewInput(msq.name, msq, original=None if original is None else load_cloud(original), model=model)

@@ -38,10 +38,14 @@ MIN_DENSITY_EXTENT_M = 1.0
 
 def parse_bbox(bbox: Sequence[float]) -> np.ndarray:
     """(2, 3) float64 [[x0, y0, z0], [x1, y1, z1]] from six numbers, lower corner first."""
-    box = np.asarray(bbox, dtype=np.float64)
+    try:
+        box = np.asarray(bbox, dtype=np.float64)
+    except (TypeError, ValueError):
+        box = np.empty(0)
     if box.shape != (6,) or not np.isfinite(box).all() or (box[:3] > box[3:]).any():
+        shown = ",".join(f"{v:g}" for v in box) if box.shape == (6,) else repr(bbox)
         raise InvalidPointCloudError(f"bbox must be six finite numbers x0,y0,z0,x1,y1,z1 with x0<=x1, y0<=y1, "
-                                     f"z0<=z1, got {list(np.asarray(bbox).ravel())}")
+                                     f"z0<=z1, got {shown}")
     return box.reshape(2, 3)
 
 
@@ -80,8 +84,8 @@ def target_counts(header: Header, entries: list[TileEntry], density: float | Non
                  for entry in entries]
         counts = [int(min(round(density * float(np.prod(side))), 2**62)) for side in sides]
     elif n_points is not None:
-        if n_points < 1:
-            raise InvalidPointCloudError(f"point count must be at least 1, got {n_points}")
+        if isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)) or n_points < 1:
+            raise InvalidPointCloudError(f"point count must be an integer of at least 1, got {n_points}")
         share = n_points * stored / max(int(stored.sum()), 1)
         counts = np.floor(share).astype(np.int64)
         counts[np.argsort(-(share - counts), kind="stable")[:n_points - int(counts.sum())]] += 1

@@ -2,7 +2,10 @@
 work folders that a killed process leaves behind are removed by the next run.
 
 A reader never sees a half-written file, and a failed write leaves the target as it was (absent or the old
-version) with no temporary file behind. OSError (missing directory, no permission, disk full) propagates.
+version) with no temporary file behind. OSError (missing directory, no permission, disk full) propagates. A target
+that is a symbolic link is written through it (the link stays, the file it names is replaced); one that exists and is
+not a regular file (a device such as /dev/null, a named pipe, a socket) is refused, since replacing it would remove
+it.
 Temporary files and folders carry the writing process's id (`.NAME.PID-RANDOM.tmp`, `PREFIXPID-RANDOM`), so
 those of dead processes (killed by SIGKILL, a crash, a power cut) are recognised and removed.
 """
@@ -64,19 +67,41 @@ def remove_dead_work_dirs(prefix: str, dir: str | os.PathLike | None = None) -> 
     return parent
 
 
-def check_output_path(path: str | os.PathLike) -> None:
-    """OutputError unless a file can be written atomically at `path`: its folder exists and is writable (a
-    temporary file is created there and removed) and no directory has its name. Call it before long work."""
-    target = Path(path)
-    folder = target.parent
+def _same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # either is missing or unreadable
+        return False
+
+
+def _replaceable(path: str | os.PathLike) -> Path:
+    """The file an atomic write to `path` replaces: `path`, or the file a symbolic link there names (the link is
+    kept); OutputError if that exists and is not a regular file (replacing a device or a pipe would remove it)."""
+    shown = target = Path(path)
+    if target.is_symlink():
+        target = Path(os.path.realpath(target))
     if target.is_dir():
-        raise OutputError(f"{target}: is a directory; give a file name")
+        raise OutputError(f"{shown}: is a directory; give a file name")
+    if target.exists() and not target.is_file():
+        raise OutputError(f"{shown}: is not a regular file (a device, pipe or socket); give a file name")
+    return target
+
+
+def check_output_path(path: str | os.PathLike, inputs: tuple[str | os.PathLike, ...] = ()) -> None:
+    """OutputError unless a file can be written atomically at `path`: its folder exists and is writable (a
+    temporary file is created there and removed), no directory, device or pipe has its name and it is none of
+    `inputs` (the files the command reads: writing one would destroy it). Call it before long work."""
+    shown, target = Path(path), _replaceable(path)
+    for source in inputs:
+        if _same_file(target, source):
+            raise OutputError(f"{shown}: is the input file {source}; give another output path")
+    folder = target.parent
     if not folder.is_dir():
-        raise OutputError(f"{target}: folder {folder} does not exist")
+        raise OutputError(f"{shown}: folder {folder} does not exist")
     try:
         _create_temp_file(target).unlink()
     except OSError as exc:
-        raise OutputError(f"{target}: cannot write in folder {folder} ({exc.strerror or exc})") from None
+        raise OutputError(f"{shown}: cannot write in folder {folder} ({exc.strerror or exc})") from None
 
 
 def _new_file_mode() -> int:
@@ -116,7 +141,7 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     The body writes the complete file to the yielded path (by path: libraries may reopen it). If the body
     raises, the temporary file is removed and the exception propagates; `path` is left untouched.
     """
-    target = Path(path)
+    target = _replaceable(path)
     temp = _create_temp_file(target)
     try:
         yield temp
