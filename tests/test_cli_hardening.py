@@ -540,6 +540,40 @@ def test_an_output_through_a_symbolic_link_keeps_the_link(run_cli, map_file, tin
     assert sorted(p.name for p in (tmp_path / "store").iterdir()) == ["v1.msq"]
 
 
+PAUSED_IMPORT_CLI = """
+import os, pathlib, sys, time
+class Pause:  # holds the import of typer (the command line's first heavy import) for a minute
+    def find_spec(self, name, path=None, target=None):
+        if name == "typer":
+            pathlib.Path(os.environ["IMPORT_MARK"]).write_text("importing")
+            time.sleep(60)
+        return None
+sys.meta_path.insert(0, Pause())
+from mapsqueeze.cli import main
+main()
+"""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_while_the_command_line_loads_gives_one_line(tmp_path, signum):
+    """Ctrl-C in the first half second of `mapsqueeze ...`, while typer and the command modules load: the same one
+    line and exit code as later, not a traceback of the import."""
+    mark = tmp_path / "mark"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "IMPORT_MARK": str(mark)}
+    process = subprocess.Popen([sys.executable, "-c", PAUSED_IMPORT_CLI, "models"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_signals_as_in_a_terminal)
+    deadline = time.monotonic() + 60
+    while not mark.exists() and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.02)
+    assert mark.exists() and process.poll() is None, process.communicate()
+    process.send_signal(signum)
+    try:
+        out, err = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert (process.returncode, out, err) == (128 + signum, "", f"error: {SIGNAL_WORDS[signum]}\n")
+
+
 def test_bbox_and_point_count_errors_are_one_plain_line(run_cli, map_file, tiny_model_dir, tmp_path):
     msq = tmp_path / "map.msq"
     mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
@@ -553,3 +587,18 @@ def test_bbox_and_point_count_errors_are_one_plain_line(run_cli, map_file, tiny_
         with pytest.raises(MapsqueezeError, match=f"point count must be an integer of at least 1, got {count}"):
             mapsqueeze.decompress(data, model=str(tiny_model_dir), n_points=count)
     assert len(mapsqueeze.decompress(data, model=str(tiny_model_dir), n_points=np.int64(7))) == 7
+
+
+def test_help_paragraphs_are_wrapped_by_the_terminal_not_by_the_source():
+    """typer keeps a docstring's line breaks in the command list and in later paragraphs, which then break lines
+    short in the middle of a terminal's width."""
+    import typer.main
+
+    from mapsqueeze.cli.commands import app
+
+    commands = typer.main.get_command(app).commands
+    assert {"compress", "convert", "simulate"} <= set(commands)
+    for name, command in commands.items():
+        assert all("\n" not in paragraph for paragraph in command.help.split("\n\n")), name
+    wide = cli_subprocess("--help", env={"COLUMNS": "200"}, timeout=120).stdout
+    assert "keeping every attribute and the LAS header's metadata the output format can hold" in wide

@@ -408,7 +408,7 @@ def test_reference_end_to_end_d_e_matches_golden(reference_dir, kitti_submap, ra
 def test_import_depoco_cli(reference_dir, tmp_path):
     from typer.testing import CliRunner
 
-    from mapsqueeze.cli import app
+    from mapsqueeze.cli.commands import app
 
     result = CliRunner().invoke(app, ["import-depoco", str(reference_dir / "e0"), "-o", str(tmp_path / "e0")])
     assert result.exit_code == 0, result.output

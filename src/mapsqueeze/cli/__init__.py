@@ -1,23 +1,17 @@
 """Command-line entry point: `mapsqueeze COMMAND ...`.
 
-Each module imported below adds its commands to the single typer app in `cli.app`; every command is a thin
-call into the library. Library errors (MapsqueezeError) and wrong flags become one `error: ...` line and exit
-code 2. Ctrl-C (SIGINT) and SIGTERM unwind every `with` block (the tile threads finish their running tiles, temporary
-folders and partial outputs are removed) and end with one line, `error: interrupted` (exit code 130) or
-`error: terminated` (143).
+`main` sets its SIGINT and SIGTERM handlers first and only then loads typer and the command modules
+(`cli.commands`, where each module adds its commands to the single typer app in `cli.app`; every command is a thin
+call into the library). Library errors (MapsqueezeError) and wrong flags become one `error: ...` line and exit
+code 2. Ctrl-C (SIGINT) and SIGTERM, from the moment `main` starts (while the command line still loads, too), unwind
+every `with` block (the tile threads finish their running tiles, temporary folders and partial outputs are removed)
+and end with one line, `error: interrupted` (exit code 130) or `error: terminated` (143). This module imports
+nothing beyond the standard library, so that the handlers are set within milliseconds of the start.
 """
 
 import signal
 import sys
 import threading
-
-import typer
-
-from mapsqueeze.cli.app import app
-from mapsqueeze.cli import (  # noqa: F401  (registers commands)
-    bench_cmds, codec_cmds, data_cmds, demo_cmds, eval_cmds, io_cmds, model_cmds, sim_cmds, view_cmds,
-)
-from mapsqueeze.errors import MapsqueezeError
 
 
 def _fail(message: str, code: int = 2) -> None:
@@ -57,23 +51,13 @@ def _install_signal_handlers() -> dict:
 def main() -> None:
     replaced = _install_signal_handlers()
     try:
-        _run()
-    finally:
-        for signum, handler in replaced.items():
-            signal.signal(signum, handler)
+        from mapsqueeze.cli.commands import run  # typer, rich and every command module, once the handlers are set
 
-
-def _run() -> None:
-    try:
-        result = app(standalone_mode=False)
-    except MapsqueezeError as exc:
-        _fail(str(exc))
-    except typer.Exit as exc:
-        sys.exit(exc.exit_code)
-    except typer.TyperException as exc:  # usage errors: unknown option, bad value, missing argument
-        _fail(f"{exc.format_message()} (see --help)", getattr(exc, "exit_code", 2))
-    except (KeyboardInterrupt, typer.Abort):
+        run()
+    except KeyboardInterrupt:
         _fail("interrupted", 128 + signal.SIGINT)
     except _Signalled as exc:
         _fail(_SIGNAL_MESSAGES[exc.signum], 128 + exc.signum)
-    sys.exit(result if isinstance(result, int) else 0)
+    finally:
+        for signum, handler in replaced.items():
+            signal.signal(signum, handler)
