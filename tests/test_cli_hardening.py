@@ -602,3 +602,13 @@ def test_help_paragraphs_are_wrapped_by_the_terminal_not_by_the_source():
         assert all("\n" not in paragraph for paragraph in command.help.split("\n\n")), name
     wide = cli_subprocess("--help", env={"COLUMNS": "200"}, timeout=120).stdout
     assert "keeping every attribute and the LAS header's metadata the output format can hold" in wide
+
+
+def test_a_count_of_one_is_singular(run_cli, tiny_model_dir, tmp_path):
+    source = map_file_of(tmp_path / "one.ply", ground(1))
+    code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "one.msq"), "--model", str(tiny_model_dir))
+    assert code == 0 and out.startswith(f"wrote {tmp_path / 'one.msq'}: 1 point in 1 tile (1 raw), ")
+    code, out, _ = run_cli("decompress", str(tmp_path / "one.msq"), "-o", str(tmp_path / "back.ply"))
+    assert (code, out) == (0, f"wrote 1 point to {tmp_path / 'back.ply'}\n")
+    code, out, _ = run_cli("convert", str(source), str(tmp_path / "one.las"))
+    assert (code, out) == (0, f"wrote 1 point to {tmp_path / 'one.las'}\n")

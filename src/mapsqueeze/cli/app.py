@@ -46,6 +46,11 @@ def parse_numbers(text: str, count: int, option: str, meaning: str) -> list[floa
     return values
 
 
+def counted(n: int, noun: str) -> str:
+    """'1 tile', '2,548,100 points': a count and its noun, plural unless one."""
+    return f"{n:,} {noun}{'' if n == 1 else 's'}"
+
+
 def make_console(stderr: bool = False) -> Console:
     """The console commands print through: rich on a terminal; piped or redirected, plain lines that are never
     wrapped or coloured (rich would wrap at 80 columns and squeeze wide tables)."""

@@ -9,7 +9,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from mapsqueeze import api
-from mapsqueeze.cli.app import FORMAT_HELP, app, make_console, parse_numbers
+from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, parse_numbers
 from mapsqueeze.cli.io_cmds import warn_dropped
 from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
@@ -113,7 +113,8 @@ def compress_command(
         console.print(f"left out {summary.zero_points_dropped:,} points at exactly (0, 0, 0) (sensor 'no return' "
                       "values; --keep-zero-points keeps them)")
     modes = ", ".join(f"{count} {mode}" for mode, count in summary.tile_modes.items())
-    console.print(f"wrote {output}: {summary.n_points:,} points in {summary.n_tiles} tiles ({modes}), "
+    console.print(f"wrote {output}: {counted(summary.n_points, 'point')} in {counted(summary.n_tiles, 'tile')} "
+                  f"({modes}), "
                   f"{summary.file_bytes:,} bytes, {summary.bits_per_point:.4f} bits per point"
                   + (f"; attributes {', '.join(summary.attributes)}: {summary.attribute_bytes:,} bytes"
                      if summary.attributes else ""))
@@ -150,7 +151,7 @@ def decompress_command(
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress, max_tile_points=max_tile_points, format=out_format,
                                     workers=workers, dask_scheduler=dask_scheduler, attributes=not no_attributes)
-    make_console().print(f"wrote {count:,} points to {output}")
+    make_console().print(f"wrote {counted(count, 'point')} to {output}")
 
 
 @app.command("info")

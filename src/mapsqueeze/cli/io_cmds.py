@@ -4,7 +4,7 @@ from pathlib import Path
 
 import typer
 
-from mapsqueeze.cli.app import FORMAT_HELP, app, make_console
+from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console
 from mapsqueeze.io import check_output_path, dropped_fields, format_name, read_point_cloud, write_points
 
 
@@ -22,7 +22,7 @@ def convert(
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
     warn_dropped(cloud.attributes, output_path, out_format)
-    make_console().print(f"wrote {len(cloud):,} points to {output_path}")
+    make_console().print(f"wrote {counted(len(cloud), 'point')} to {output_path}")
 
 
 def warn_dropped(names, output_path: Path, out_format: str | None = None) -> None:
