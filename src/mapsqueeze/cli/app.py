@@ -4,7 +4,6 @@ import sys
 
 import typer
 from rich.console import Console
-from typer.core import TyperOption
 
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import SUPPORTED_FORMATS
@@ -18,6 +17,7 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # click's plain help: rich's option table cuts flag names short at 80 columns
 )
 
 
@@ -58,11 +58,3 @@ def make_console(stderr: bool = False) -> Console:
         return Console(stderr=stderr)
     return Console(stderr=stderr, width=10_000, soft_wrap=True, no_color=True, highlight=False, emoji=False)
 
-
-def _flag_type(option: TyperOption, ctx) -> str | None:
-    """Help shows a boolean flag as `--json`, not `--json <bool>` (it takes no value)."""
-    return None if option.is_flag else _option_type(option, ctx)
-
-
-_option_type = TyperOption.display_type_rich
-TyperOption.display_type_rich = _flag_type

@@ -52,7 +52,7 @@ def _workers_option() -> typer.models.OptionInfo:
 def _dask_option() -> typer.models.OptionInfo:
     return typer.Option(None, "--dask-scheduler", metavar="ADDRESS",
                         help="code the tiles on the Dask cluster at ADDRESS ('local': start one of --workers "
-                             "processes); needs the dask extra: pip install 'mapsqueeze\\[dask]'")
+                             "processes); needs the dask extra: pip install 'mapsqueeze[dask]'")
 
 
 @app.command("compress")

@@ -1,7 +1,6 @@
 """The command line with every command registered on the typer app (`cli.app`), and `run`, which runs the command
 sys.argv names; `cli.main` loads this module once its signal handlers are set."""
 
-import inspect
 import signal
 import sys
 
@@ -13,17 +12,6 @@ from mapsqueeze.cli import (  # noqa: F401  (registers commands)
     bench_cmds, codec_cmds, data_cmds, demo_cmds, eval_cmds, io_cmds, model_cmds, sim_cmds, view_cmds,
 )
 from mapsqueeze.errors import MapsqueezeError
-
-
-def _one_line_paragraphs(doc: str) -> str:
-    """A docstring with each paragraph on one line: typer's help and command list keep the source's line breaks,
-    which then break the terminal's lines short."""
-    return "\n\n".join(" ".join(paragraph.split()) for paragraph in inspect.cleandoc(doc).split("\n\n"))
-
-
-for _command in app.registered_commands:
-    if _command.help is None and _command.callback.__doc__:
-        _command.help = _one_line_paragraphs(_command.callback.__doc__)
 
 
 def run() -> None:
