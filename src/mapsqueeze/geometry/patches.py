@@ -4,6 +4,8 @@ Deterministic: a single-threaded compiled kernel, fixed sample pattern, no rando
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mapsqueeze.geometry.jit import compiled
@@ -37,7 +39,8 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     (metres; as `occupancy._mark_voxels`). The grid must hold every point inside [0, upper] (fewer than 2^31
     cells). An option with extra points whose pull strength an earlier option without extra points has starts
     from that option's cells of the patch (the same moved points), then adds its extra points' cells: a third less
-    work for PATCH_OPTIONS; the cells of a list come in no particular order. The cells are written into a
+    work for PATCH_OPTIONS; the cells of a list come in no particular order (`_option_cells_kernel`: the cells of
+    a patch's points computed in a loop of their own, then listed). The cells are written into a
     reservation of CELLS_RESERVED_PART of the reworked points (made again whole when too short), not one per point:
     the search's peak memory, on every tile (malloc's kept heap maps in what any tile touches)."""
     points, box_low, box = checked_points(points, patch, upper)
@@ -50,9 +53,8 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     most = len(points) * int(np.sum(1 + copies))  # one cell per reworked point
     for size in (min(most, most // CELLS_RESERVED_PART + patch * int(1 + copies.max(initial=0))), most):
         cells = np.empty(size, dtype=np.int32)
-        n_cells = _patch_planes_kernel(points, patch, strengths, copies, radii, True, box_low, box, GOLDEN_ANGLE,
-                                       GOLDEN_FRACTION, np.empty((0, 3), dtype=np.float32), offsets[1:], True,
-                                       np.asarray(frame_m, dtype=np.float64),
+        n_cells = _option_cells_kernel(points, patch, strengths, copies, radii, box_low, box, GOLDEN_ANGLE,
+                                       GOLDEN_FRACTION, offsets[1:], np.asarray(frame_m, dtype=np.float64),
                                        np.asarray(voxel_m, dtype=np.float64), np.asarray(low, dtype=np.int64),
                                        np.asarray(shape, dtype=np.int64), seen, cells, base)
         if n_cells >= 0:
@@ -74,16 +76,24 @@ def patch_setting_voxels(points: np.ndarray, patch: int, strength: float, copies
     crop), bit 2 + c for those of `patch_planes(points, patch, strength, copies[c], radius_m, upper)`. A point's
     cell is that of its float32 value p in the flat uint8 grid of `shape` voxels from voxel `low`, the voxel of
     floor((p + frame_m) / voxel_m) (as `occupancy._mark_voxels`); the grid must hold the box. The settings share
-    the planes and the moved points; each computes its own disk samples.
+    the planes and the disk samples (sample s is extra point s % c of point s // c under c copies: with 1 and 2
+    copies, two samples per point instead of three), made in blocks of SAMPLE_BLOCK_POINTS samples or a few more.
     Returns the points marked per bit (the cloud's, then each setting's)."""
     points, box_low, box = checked_points(points, patch, upper)
     copies = np.asarray(copies, dtype=np.int64)
     inside = np.zeros(1 + len(copies), dtype=np.int64)
+    whole = math.lcm(*(int(c) for c in copies if c > 0))  # every point's samples in one block
+    block = whole * -(-SAMPLE_BLOCK_POINTS // whole)
     _patch_settings_kernel(points, patch, float(strength), copies, float(radius_m), GOLDEN_ANGLE, GOLDEN_FRACTION,
-                           box_low, box,
+                           block, box_low, box,
                            np.asarray(frame_m, dtype=np.float64), np.asarray(voxel_m, dtype=np.float64),
                            np.asarray(low, dtype=np.int64), np.asarray(shape, dtype=np.int64), grid, inside)
     return inside
+
+
+SAMPLE_BLOCK_POINTS = 4096
+"""Disk samples `patch_setting_voxels` makes at once (rounded up to a multiple of every setting's copies), before
+the settings' extra points: 64 KB of them, which stay in the CPU's cache."""
 
 
 def _option_arrays(options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -102,9 +112,7 @@ def _rework(points: np.ndarray, patch: int, options, per_patch: bool, upper: np.
     out = np.empty((len(points) * int(np.sum(1 + copies)), 3), dtype=np.float32)
     ends = np.empty(len(options) * (len(points) // patch), dtype=np.int64)
     _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, GOLDEN_ANGLE,
-                         GOLDEN_FRACTION, out, ends, False, np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64),
-                         np.ones(3, dtype=np.int64), np.zeros(0, dtype=np.uint8), np.zeros(0, dtype=np.int32),
-                         np.full(len(options), -1, dtype=np.int64))
+                         GOLDEN_FRACTION, out, ends)
     return out, ends
 
 
@@ -195,20 +203,15 @@ def _fit_planes(points, patch):
 
 @compiled
 def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low, box, golden_angle, golden_fraction,
-                         out, ends, to_cells, frame, voxel, grid_low, grid_shape, seen, cells, base):
+                         out, ends):
     """`_rework`'s kernel: each patch's plane (centroid, normal, tangents) fitted once, then the patches reworked
     option after option; ends[k n_patches + i]: the row after patch i under option k. Per patch, every patch has
     the same disk samples: those of its first patch are kept and reused (no sine or cosine for the others).
-    to_cells (`patch_option_cells`; `out` unused): each point's voxel cell is appended to `cells` as the point is
-    made when it lies inside the box, unless the list being made has it (seen: 0 per grid cell, a work array), and
-    ends[l] is the end of list l's cells; the points of a patch under an option with base[option] >= 0 are those
-    of option base[option] (the same strength, no extra points), whose cells it copies, followed by its extra
-    points. Returns the rows stored, or the cells (-1, `seen` clear, when `cells` lacks room for the most cells
-    of a list: one per point of its patch and extra point)."""
+    Returns the rows stored."""
     n_patches = points.shape[0] // patch
     planes = _fit_planes(points, patch)
     disk = np.empty((patch * max(copies.max(), 0) if per_patch else 0, 2))  # per patch: every patch's samples
-    kept = n_cells = listed = 0
+    kept = 0
     for option in range(strengths.shape[0]):
         strength, n_copies, radius_m = strengths[option], copies[option], radii[option]
         for index in range(n_patches):
@@ -216,53 +219,8 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
             first = start if per_patch else 0
             reuse = per_patch and index > 0  # the disk samples of patch 0, computed as they were used
             plane = planes[index]
-            entry = option * n_patches + index
-            copied = to_cells and base[option] >= 0  # the patch's own points: the cells of option base[option]
-            if to_cells:
-                kept = 0
-                listed = n_cells
-                # the most cells of this list: its patch's points (or the copied cells of them) and extra points
-                if n_cells + patch * (1 + n_copies) > cells.shape[0]:
-                    return -1  # `cells` too short; `seen` is clear
-                if copied:
-                    source = base[option] * n_patches + index
-                    for j in range(ends[source - 1] if source > 0 else 0, ends[source]):
-                        seen[cells[j]] = 1
-                        cells[n_cells] = cells[j]
-                        n_cells += 1
             mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
             fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
-            if to_cells:  # a loop of its own: the cells made after `_store_inside` in the loop below run 2-4x slower
-                for i in range(start, start + patch):
-                    offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
-                    px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
-                    if not copied:
-                        x, y, z = np.float32(px), np.float32(py), np.float32(pz)
-                        if _in_box(x, y, z, low, box):
-                            cell = _cell(x, y, z, frame, voxel, grid_low, grid_shape)
-                            if seen[cell] == 0:
-                                seen[cell] = 1
-                                cells[n_cells] = cell
-                                n_cells += 1
-                    for j in range(n_copies):
-                        sample = (i - first) * n_copies + j
-                        if reuse:
-                            u, v = disk[sample, 0], disk[sample, 1]
-                        else:
-                            u, v = _disk_sample(sample, radius_m, golden_angle, golden_fraction)
-                            disk[sample, 0], disk[sample, 1] = u, v
-                        x, y, z = (np.float32(px + u * fx + v * sx), np.float32(py + u * fy + v * sy),
-                                   np.float32(pz + u * fz + v * sz))
-                        if _in_box(x, y, z, low, box):
-                            cell = _cell(x, y, z, frame, voxel, grid_low, grid_shape)
-                            if seen[cell] == 0:
-                                seen[cell] = 1
-                                cells[n_cells] = cell
-                                n_cells += 1
-                ends[entry] = n_cells
-                for j in range(listed, n_cells):
-                    seen[cells[j]] = 0
-                continue
             for i in range(start, start + patch):
                 offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
                 px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
@@ -277,14 +235,112 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
                             disk[sample, 0], disk[sample, 1] = u, v
                     kept = _store_inside(out, kept, px + u * fx + v * sx, py + u * fy + v * sy,
                                          pz + u * fz + v * sz, low, box)
-            ends[entry] = kept
-    return n_cells if to_cells else kept
+            ends[option * n_patches + index] = kept
+    return kept
+
+
+@compiled
+def _option_cells_kernel(points, patch, strengths, copies, radii, low, box, golden_angle, golden_fraction, ends,
+                         frame, voxel, grid_low, grid_shape, seen, cells, base):
+    """`patch_option_cells`'s kernel: the points of `_patch_planes_kernel` per patch (disk samples numbered from
+    each patch's first point, computed once per option) reduced to their distinct voxel cells as they are made,
+    list l = k n_patches + i (patch i under option k) ending at ends[l]. Per list, the moved points and then each
+    extra point's copy are made in loops of their own and their cells computed in another (`_cells_inside`: no
+    branch, so the compiler vectorises it), then the cells are listed in the points' order, each once (seen: 0 per
+    grid cell, a work array, cleared after each list). A patch under an option with base[option] >= 0 starts from
+    the cells of option base[option] (the same strength, no extra points), its moved points' cells. Returns the
+    cells listed, or -1 (`seen` clear) when `cells` lacks room for the most cells of a list: one per point of its
+    patch and extra point."""
+    n_patches = points.shape[0] // patch
+    planes = _fit_planes(points, patch)
+    most_copies = max(copies.max(), 0)
+    disk_u, disk_v = np.empty((most_copies, patch)), np.empty((most_copies, patch))  # per copy and point
+    moved_x, moved_y, moved_z = np.empty(patch), np.empty(patch), np.empty(patch)
+    extra_x, extra_y, extra_z = np.empty(patch), np.empty(patch), np.empty(patch)
+    own = np.empty(patch, dtype=np.int64)  # the moved points' cells, -1 outside the box
+    extra = np.empty((most_copies, patch), dtype=np.int64)  # each copy's cells
+    n_cells = 0
+    for option in range(strengths.shape[0]):
+        strength, n_copies, radius_m = strengths[option], copies[option], radii[option]
+        for i in range(patch):
+            for j in range(n_copies):
+                disk_u[j, i], disk_v[j, i] = _disk_sample(i * n_copies + j, radius_m, golden_angle, golden_fraction)
+        copied = base[option] >= 0
+        for index in range(n_patches):
+            start = index * patch
+            listed = n_cells
+            # the most cells of this list: its patch's points (or the copied cells of them) and extra points
+            if n_cells + patch * (1 + n_copies) > cells.shape[0]:
+                return -1  # `cells` too short; `seen` is clear
+            if copied:
+                source = base[option] * n_patches + index
+                for j in range(ends[source - 1] if source > 0 else 0, ends[source]):
+                    seen[cells[j]] = 1
+                    cells[n_cells] = cells[j]
+                    n_cells += 1
+            plane = planes[index]
+            mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
+            fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
+            for i in range(patch):
+                p = start + i
+                offset = strength * ((points[p, 0] - mx) * nx + (points[p, 1] - my) * ny + (points[p, 2] - mz) * nz)
+                moved_x[i] = points[p, 0] - offset * nx
+                moved_y[i] = points[p, 1] - offset * ny
+                moved_z[i] = points[p, 2] - offset * nz
+            if not copied:
+                _cells_inside(moved_x, moved_y, moved_z, low, box, frame, voxel, grid_low, grid_shape, own)
+            for j in range(n_copies):
+                for i in range(patch):
+                    u, v = disk_u[j, i], disk_v[j, i]
+                    extra_x[i] = moved_x[i] + u * fx + v * sx
+                    extra_y[i] = moved_y[i] + u * fy + v * sy
+                    extra_z[i] = moved_z[i] + u * fz + v * sz
+                _cells_inside(extra_x, extra_y, extra_z, low, box, frame, voxel, grid_low, grid_shape, extra[j])
+            for i in range(patch):
+                if not copied:
+                    cell = own[i]
+                    if cell >= 0 and seen[cell] == 0:
+                        seen[cell] = 1
+                        cells[n_cells] = cell
+                        n_cells += 1
+                for j in range(n_copies):
+                    cell = extra[j, i]
+                    if cell >= 0 and seen[cell] == 0:
+                        seen[cell] = 1
+                        cells[n_cells] = cell
+                        n_cells += 1
+            ends[option * n_patches + index] = n_cells
+            for j in range(listed, n_cells):
+                seen[cells[j]] = 0
+    return n_cells
+
+
+@compiled
+def _cells_inside(x, y, z, low, box, frame, voxel, grid_low, grid_shape, out):
+    """out[i]: the grid cell of the float32 point (x[i], y[i], z[i]) (as `_cell`) when it lies inside [low, box]
+    (as `_in_box`), else -1; both computed for every point, then one selected (no branch; the bounds held in
+    locals, which the stores to `out` would otherwise make the loop read again)."""
+    box_x, box_y, box_z = box[0], box[1], box[2]
+    frame_x, frame_y, frame_z = frame[0], frame[1], frame[2]
+    voxel_x, voxel_y, voxel_z = voxel[0], voxel[1], voxel[2]
+    low_x, low_y, low_z = grid_low[0], grid_low[1], grid_low[2]
+    shape_y, shape_z = grid_shape[1], grid_shape[2]
+    for i in range(out.shape[0]):
+        fx, fy, fz = np.float32(x[i]), np.float32(y[i]), np.float32(z[i])
+        inside = (fx >= low) & (fy >= low) & (fz >= low) & (fx <= box_x) & (fy <= box_y) & (fz <= box_z)
+        cx = np.int64(np.floor((np.float64(fx) + frame_x) / voxel_x)) - low_x
+        cy = np.int64(np.floor((np.float64(fy) + frame_y) / voxel_y)) - low_y
+        cz = np.int64(np.floor((np.float64(fz) + frame_z) / voxel_z)) - low_z
+        out[i] = (cx * shape_y + cy) * shape_z + cz if inside else -1
 
 
 @compiled
 def _disk_sample(sample, radius_m, golden_angle, golden_fraction):
-    """(u, v): the in-plane offsets of disk sample `sample` (an integer) on a disk of radius_m."""
-    radius = radius_m * np.sqrt((sample * golden_fraction) % 1.0)
+    """(u, v): the in-plane offsets of disk sample `sample` (a non-negative integer) on a disk of radius_m. The
+    fraction of sample x golden_fraction is that number less its floor: its % 1.0, exactly (a subtraction instead
+    of the C library's fmod)."""
+    product = sample * golden_fraction
+    radius = radius_m * np.sqrt(product - np.floor(product))
     angle = sample * golden_angle
     return radius * np.cos(angle), radius * np.sin(angle)
 
@@ -305,40 +361,81 @@ def _cell(x, y, z, frame, voxel, grid_low, grid_shape):
 
 
 @compiled
-def _patch_settings_kernel(points, patch, strength, copies, radius_m, golden_angle, golden_fraction, low, box, frame,
-                           voxel, grid_low, grid_shape, grid, inside):
+def _patch_settings_kernel(points, patch, strength, copies, radius_m, golden_angle, golden_fraction, block, low, box,
+                           frame, voxel, grid_low, grid_shape, grid, inside):
     """`patch_setting_voxels`'s kernel: the points of `_patch_planes_kernel` (one option at a time, samples
-    numbered from the cloud's first point) marked in the grid as they are made; each setting computes its disk
-    samples (no table of them: 16 MB on a 490,000-point tile)."""
+    numbered from the cloud's first point) marked in the grid, in an order of their own (the marks are ORed, the
+    counts summed): patch by patch the cloud's and the moved points, then `block` disk samples at a time (a
+    multiple of every setting's copies) each setting's extra points of the points whose samples they are. Each
+    group of points is made in a loop of its own, its cells computed in another (`_cells_inside`: no branch, so
+    the compiler vectorises it) and marked in a third."""
+    n = points.shape[0]
     planes = _fit_planes(points, patch)
     moved_bits = 0
+    most = 0
     for c in range(copies.shape[0]):
         moved_bits |= 1 << (2 + c)
+        most = max(most, copies[c])
     n_plain = n_moved = 0
-    for index in range(points.shape[0] // patch):
+    moved_x, moved_y, moved_z = np.empty(patch), np.empty(patch), np.empty(patch)
+    plain_cells, moved_cells = np.empty(patch, dtype=np.int64), np.empty(patch, dtype=np.int64)
+    for index in range(n // patch):
         plane = planes[index]
         mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
-        fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
-        for i in range(index * patch, (index + 1) * patch):
-            x, y, z = np.float32(points[i, 0]), np.float32(points[i, 1]), np.float32(points[i, 2])
-            if _in_box(x, y, z, low, box):
-                grid[_cell(x, y, z, frame, voxel, grid_low, grid_shape)] |= 2
-                n_plain += 1
+        start = index * patch
+        own = points[start:start + patch]
+        _cells_inside(own[:, 0], own[:, 1], own[:, 2], low, box, frame, voxel, grid_low, grid_shape, plain_cells)
+        for r in range(patch):
+            i = start + r
             offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
-            px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
-            x, y, z = np.float32(px), np.float32(py), np.float32(pz)
-            if _in_box(x, y, z, low, box):
-                grid[_cell(x, y, z, frame, voxel, grid_low, grid_shape)] |= moved_bits
+            moved_x[r], moved_y[r], moved_z[r] = (points[i, 0] - offset * nx, points[i, 1] - offset * ny,
+                                                  points[i, 2] - offset * nz)
+        _cells_inside(moved_x, moved_y, moved_z, low, box, frame, voxel, grid_low, grid_shape, moved_cells)
+        for r in range(patch):
+            if plain_cells[r] >= 0:
+                grid[plain_cells[r]] |= 2
+                n_plain += 1
+            if moved_cells[r] >= 0:
+                grid[moved_cells[r]] |= moved_bits
                 n_moved += 1
-            for c in range(copies.shape[0]):
-                bit = 1 << (2 + c)
-                for j in range(copies[c]):
-                    u, v = _disk_sample(i * copies[c] + j, radius_m, golden_angle, golden_fraction)
-                    x, y, z = (np.float32(px + u * fx + v * sx), np.float32(py + u * fy + v * sy),
-                               np.float32(pz + u * fz + v * sz))
-                    if _in_box(x, y, z, low, box):
-                        grid[_cell(x, y, z, frame, voxel, grid_low, grid_shape)] |= bit
-                        inside[1 + c] += 1
+    disk_u, disk_v = np.empty(block), np.empty(block)
+    extra_x, extra_y, extra_z = np.empty(block), np.empty(block), np.empty(block)
+    cells = np.empty(block, dtype=np.int64)
+    for first in range(0, n * most, block):
+        last = min(first + block, n * most)
+        for sample in range(first, last):
+            disk_u[sample - first], disk_v[sample - first] = _disk_sample(sample, radius_m, golden_angle,
+                                                                          golden_fraction)
+        for c in range(copies.shape[0]):
+            k = copies[c]
+            if k <= 0 or first >= n * k:
+                continue
+            begin, end = first // k, min(last // k, n)  # the points whose samples this block holds
+            index = begin // patch
+            plane = planes[index]
+            mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
+            fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
+            for i in range(begin, end):
+                if i == (index + 1) * patch:
+                    index += 1
+                    plane = planes[index]
+                    mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
+                    fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
+                offset = strength * ((points[i, 0] - mx) * nx + (points[i, 1] - my) * ny + (points[i, 2] - mz) * nz)
+                px, py, pz = points[i, 0] - offset * nx, points[i, 1] - offset * ny, points[i, 2] - offset * nz
+                for j in range(k):
+                    r = i * k + j - first
+                    u, v = disk_u[r], disk_v[r]
+                    extra_x[r], extra_y[r], extra_z[r] = (px + u * fx + v * sx, py + u * fy + v * sy,
+                                                          pz + u * fz + v * sz)
+            made = (end - begin) * k
+            _cells_inside(extra_x[:made], extra_y[:made], extra_z[:made], low, box, frame, voxel, grid_low,
+                          grid_shape, cells[:made])
+            bit = 1 << (2 + c)
+            for r in range(made):
+                if cells[r] >= 0:
+                    grid[cells[r]] |= bit
+                    inside[1 + c] += 1
     inside[0] += n_plain
     for c in range(copies.shape[0]):
         inside[1 + c] += n_moved
