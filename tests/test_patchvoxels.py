@@ -1,6 +1,8 @@
 """The encoder's voxel kernels of the patch planes (geometry.patches: `patch_setting_voxels`, `patch_option_cells`)
 give the voxels of the reworked points that numpy's patch planes (geometry.patchesnumpy) and `patch_options` make,
-whatever their blocking: points on voxel faces, points outside the box, a degenerate patch, several copy counts."""
+whatever their blocking: points on voxel faces, points outside the box, a degenerate patch, several copy counts; the
+patch-choice search's greedy sweeps (geometry.occupancy) choose as a plain reference of their rule does, ties
+included."""
 
 import math
 
@@ -9,7 +11,7 @@ import pytest
 
 from mapsqueeze.codec.postfilter import PATCH_OPTIONS
 from mapsqueeze.codec.tilepoints import keep_inside
-from mapsqueeze.geometry import patches
+from mapsqueeze.geometry import occupancy, patches
 from mapsqueeze.geometry.patches import patch_option_cells, patch_options, patch_setting_voxels
 from mapsqueeze.geometry.patchesnumpy import patch_planes
 from mapsqueeze.geometry.surface import GOLDEN_ANGLE, GOLDEN_FRACTION
@@ -89,3 +91,68 @@ def test_option_cells_are_the_distinct_voxels_of_patch_options_points_on_voxel_f
     for entry, (begin, end) in enumerate(zip(np.concatenate([[0], ends[:-1]]), ends)):
         listed = cells[offsets[entry]:offsets[entry + 1]].tolist()
         assert len(set(listed)) == len(listed) and set(listed) == set(linear[begin:end].tolist())
+
+
+def reference_greedy(original, n_original, lists, n_options, choice, sweeps, bonus, bit_weight, rate_sweeps):
+    """`occupancy._greedy_choices`'s rule in plain Python: lists[k][i] the distinct cells of patch i under option
+    k; each sweep gives each patch in turn the option of the highest value with the other patches as chosen (ties:
+    its current option, then the lowest); returns (IoU before, IoU after), `choice` updated in place."""
+    n_patches = len(choice)
+
+    def union(skip=None):
+        return set().union(*(lists[choice[j]][j] for j in range(n_patches) if j != skip))
+
+    def iou_now():
+        occupied = union()
+        return sum(original[c] for c in occupied) / max(1, n_original + sum(1 - original[c] for c in occupied))
+
+    before = iou_now()
+    for rate, count in ((0.0, sweeps), (bit_weight, rate_sweeps)):
+        for _ in range(count):
+            changed = False
+            for i in range(n_patches):
+                others = union(skip=i)
+                shared = sum(original[c] for c in others)
+                false = len(others) - shared
+                counts = np.bincount(np.delete(choice, i), minlength=n_options)
+                best, best_value = choice[i], -np.inf
+                for option in range(n_options):
+                    cells = lists[option][i]
+                    new = [c for c in cells if c not in others]
+                    gained = sum(original[c] for c in new)
+                    credit = bonus[option] * sum(original[c] for c in cells) / max(1, len(cells))
+                    value = (shared + gained + credit) / max(1, n_original + false + len(new) - gained)
+                    if rate > 0.0:
+                        value += rate * math.log2((counts[option] + 0.5) / (n_patches - 1 + 0.5 * n_options))
+                    if value > best_value or (value == best_value and option == choice[i]):
+                        best, best_value = option, value
+                changed |= best != choice[i]
+                choice[i] = best
+            if not changed:
+                break
+    return before, iou_now()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_greedy_sweeps_choose_as_the_reference(seed):
+    """Random cell lists over few cells (many equal values: ties), with and without the copy bonus and the bits'
+    rate term: the same choices and the same IoUs, to the bit."""
+    rng = np.random.default_rng(seed)
+    n_cells, n_patches, n_options = 40, 14, 5
+    original = (rng.random(n_cells) < 0.4).astype(np.uint8)
+    n_original = int(original.sum()) + 3  # some of the original's cells listed by no patch
+    lists = [[np.sort(rng.choice(n_cells, rng.integers(0, 9), replace=False)) for _ in range(n_patches)]
+             for _ in range(n_options)]
+    cells = np.concatenate([lists[k][i] for k in range(n_options) for i in range(n_patches)]).astype(np.int32)
+    offsets = np.concatenate([[0], np.cumsum([len(lists[k][i]) for k in range(n_options)
+                                              for i in range(n_patches)])]).astype(np.int64)
+    bonus = (rng.integers(0, 3, n_options) * 0.25 if seed % 2 else np.zeros(n_options)).astype(np.float64)
+    bit_weight, rate_sweeps = (0.004, 2) if seed % 3 else (0.0, 0)
+    start = rng.integers(0, n_options, n_patches)
+    choice, expected_choice = start.astype(np.int64), start.astype(np.int64)
+    found = occupancy._greedy_choices(original, n_original, cells, offsets, n_options, n_patches, choice, 3, bonus,
+                                      bit_weight, rate_sweeps)
+    expected = reference_greedy(original, n_original, [[set(c.tolist()) for c in row] for row in lists], n_options,
+                                expected_choice, 3, bonus, bit_weight, rate_sweeps)
+    assert found == expected
+    assert np.array_equal(choice, expected_choice)

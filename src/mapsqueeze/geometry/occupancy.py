@@ -233,17 +233,21 @@ def _greedy_sweep(original, cells, offsets, n_options, n_patches, choice, bonus,
         best, best_value = choice[i], -np.inf
         for option in range(n_options):
             k = option * n_patches + i
-            gained = added = on_original = 0
-            weighted = bonus[option] > 0.0
-            for j in range(offsets[k], offsets[k + 1]):
-                cell = cells[j]
-                if weighted and original[cell]:
-                    on_original += 1
-                if occupied[cell] == 0:
-                    if original[cell]:
-                        gained += 1
-                    else:
-                        added += 1
+            gained = empty = on_original = 0  # counted without a branch per cell (original[cell] is 0 or 1)
+            if bonus[option] > 0.0:
+                for j in range(offsets[k], offsets[k + 1]):
+                    cell = cells[j]
+                    free = np.int64(occupied[cell] == 0)
+                    on_original += original[cell]
+                    gained += free & original[cell]
+                    empty += free
+            else:
+                for j in range(offsets[k], offsets[k + 1]):
+                    cell = cells[j]
+                    free = np.int64(occupied[cell] == 0)
+                    gained += free & original[cell]
+                    empty += free
+            added = empty - gained
             credit = bonus[option] * on_original / max(1, offsets[k + 1] - offsets[k])
             value = (shared + gained + credit) / max(1, n_original + false + added)
             if rate > 0.0:
