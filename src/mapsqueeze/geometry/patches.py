@@ -39,26 +39,35 @@ def patch_option_cells(points: np.ndarray, patch: int, options, upper: np.ndarra
     (metres; as `occupancy._mark_voxels`). The grid must hold every point inside [0, upper] (fewer than 2^31
     cells). An option with extra points whose pull strength an earlier option without extra points has starts
     from that option's cells of the patch (the same moved points), then adds its extra points' cells: a third less
-    work for PATCH_OPTIONS; the cells of a list come in no particular order (`_option_cells_kernel`: the cells of
-    a patch's points computed in a loop of their own, then listed). The cells are written into a
-    reservation of CELLS_RESERVED_PART of the reworked points (made again whole when too short), not one per point:
-    the search's peak memory, on every tile (malloc's kept heap maps in what any tile touches)."""
+    work for PATCH_OPTIONS; the cells of a list come in no particular order. The lists are made patch by patch
+    (`_option_cells_kernel`: the options of equal strength share the patch's moved points), each option's in turn,
+    then gathered in list order (`_gather_lists`). They are written into a reservation of CELLS_RESERVED_PART of the
+    reworked points (made again whole when too short), not one per point: the search's peak memory, on every tile
+    (malloc's kept heap maps in what any tile touches)."""
     points, box_low, box = checked_points(points, patch, upper)
     strengths, copies, radii = _option_arrays(options)
     n_patches = len(points) // patch
-    offsets = np.zeros(len(options) * n_patches + 1, dtype=np.int64)
+    distinct = list(dict.fromkeys(strengths.tolist()))
+    moved_row = np.array([distinct.index(strength) for strength in strengths.tolist()], dtype=np.int64)
+    starts = np.zeros(len(options) * n_patches, dtype=np.int64)  # where each list was made, and its length
+    lengths = np.zeros(len(options) * n_patches, dtype=np.int64)
     seen = np.zeros(int(np.prod(shape)), dtype=np.uint8)  # 1: in the list being made (cleared after it)
     base = np.array([next((j for j in range(k) if strengths[j] == strengths[k] and copies[j] == 0), -1)
                      if copies[k] else -1 for k in range(len(options))], dtype=np.int64)
     most = len(points) * int(np.sum(1 + copies))  # one cell per reworked point
     for size in (min(most, most // CELLS_RESERVED_PART + patch * int(1 + copies.max(initial=0))), most):
-        cells = np.empty(size, dtype=np.int32)
-        n_cells = _option_cells_kernel(points, patch, strengths, copies, radii, box_low, box, GOLDEN_ANGLE,
-                                       GOLDEN_FRACTION, offsets[1:], np.asarray(frame_m, dtype=np.float64),
-                                       np.asarray(voxel_m, dtype=np.float64), np.asarray(low, dtype=np.int64),
-                                       np.asarray(shape, dtype=np.int64), seen, cells, base)
+        made = np.empty(size, dtype=np.int32)
+        n_cells = _option_cells_kernel(points, patch, strengths, copies, radii, moved_row, len(distinct), box_low,
+                                       box, GOLDEN_ANGLE, GOLDEN_FRACTION, starts, lengths,
+                                       np.asarray(frame_m, dtype=np.float64), np.asarray(voxel_m, dtype=np.float64),
+                                       np.asarray(low, dtype=np.int64), np.asarray(shape, dtype=np.int64), seen,
+                                       made, base)
         if n_cells >= 0:
-            return cells[:n_cells], offsets
+            del seen
+            cells = np.empty(n_cells, dtype=np.int32)
+            offsets = np.zeros(len(options) * n_patches + 1, dtype=np.int64)
+            _gather_lists(made, starts, lengths, cells, offsets)
+            return cells, offsets
     raise AssertionError("unreachable: one cell per reworked point fits")
 
 
@@ -240,58 +249,70 @@ def _patch_planes_kernel(points, patch, strengths, copies, radii, per_patch, low
 
 
 @compiled
-def _option_cells_kernel(points, patch, strengths, copies, radii, low, box, golden_angle, golden_fraction, ends,
-                         frame, voxel, grid_low, grid_shape, seen, cells, base):
+def _option_cells_kernel(points, patch, strengths, copies, radii, moved_row, n_moved, low, box, golden_angle,
+                         golden_fraction, starts, lengths, frame, voxel, grid_low, grid_shape, seen, cells, base):
     """`patch_option_cells`'s kernel: the points of `_patch_planes_kernel` per patch (disk samples numbered from
-    each patch's first point, computed once per option) reduced to their distinct voxel cells as they are made,
-    list l = k n_patches + i (patch i under option k) ending at ends[l]. Per list, the moved points and then each
-    extra point's copy are made in loops of their own and their cells computed in another (`_cells_inside`: no
-    branch, so the compiler vectorises it), then the cells are listed in the points' order, each once (seen: 0 per
-    grid cell, a work array, cleared after each list). A patch under an option with base[option] >= 0 starts from
-    the cells of option base[option] (the same strength, no extra points), its moved points' cells. Returns the
-    cells listed, or -1 (`seen` clear) when `cells` lacks room for the most cells of a list: one per point of its
-    patch and extra point."""
+    each patch's first point, computed once) reduced to their distinct voxel cells as they are made, patch after
+    patch and within a patch option after option: list l = k n_patches + i (patch i under option k) in
+    cells[starts[l]:starts[l] + lengths[l]]. A patch's moved points under strength row moved_row[k] (of n_moved
+    distinct strengths) are made once, in a loop of their own; each extra point's copy of them in another; their
+    cells in a third (`_cells_inside`: no branch, so the compiler vectorises it); then the cells are listed in the
+    points' order, each once (seen: 0 per grid cell, a work array, cleared after each list). A patch under an
+    option with base[option] >= 0 starts from the cells of option base[option] (the same strength, no extra
+    points), its moved points' cells. Returns the cells listed, or -1 (`seen` clear) when `cells` lacks room for
+    the most cells of a list: one per point of its patch and extra point."""
     n_patches = points.shape[0] // patch
+    n_options = strengths.shape[0]
     planes = _fit_planes(points, patch)
     most_copies = max(copies.max(), 0)
-    disk_u, disk_v = np.empty((most_copies, patch)), np.empty((most_copies, patch))  # per copy and point
-    moved_x, moved_y, moved_z = np.empty(patch), np.empty(patch), np.empty(patch)
+    disk_u, disk_v = np.empty((n_options, most_copies, patch)), np.empty((n_options, most_copies, patch))
+    for option in range(n_options):
+        for i in range(patch):
+            for j in range(copies[option]):
+                disk_u[option, j, i], disk_v[option, j, i] = _disk_sample(i * copies[option] + j, radii[option],
+                                                                          golden_angle, golden_fraction)
+    moved = np.empty((n_moved, 3, patch))  # the patch's moved points per strength
+    made = np.zeros(n_moved, dtype=np.bool_)
     extra_x, extra_y, extra_z = np.empty(patch), np.empty(patch), np.empty(patch)
     own = np.empty(patch, dtype=np.int64)  # the moved points' cells, -1 outside the box
     extra = np.empty((most_copies, patch), dtype=np.int64)  # each copy's cells
     n_cells = 0
-    for option in range(strengths.shape[0]):
-        strength, n_copies, radius_m = strengths[option], copies[option], radii[option]
-        for i in range(patch):
-            for j in range(n_copies):
-                disk_u[j, i], disk_v[j, i] = _disk_sample(i * n_copies + j, radius_m, golden_angle, golden_fraction)
-        copied = base[option] >= 0
-        for index in range(n_patches):
-            start = index * patch
-            listed = n_cells
+    for index in range(n_patches):
+        start = index * patch
+        plane = planes[index]
+        mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
+        fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
+        made[:] = False
+        for option in range(n_options):
+            n_copies = copies[option]
             # the most cells of this list: its patch's points (or the copied cells of them) and extra points
             if n_cells + patch * (1 + n_copies) > cells.shape[0]:
                 return -1  # `cells` too short; `seen` is clear
+            listed = n_cells
+            copied = base[option] >= 0
             if copied:
                 source = base[option] * n_patches + index
-                for j in range(ends[source - 1] if source > 0 else 0, ends[source]):
+                for j in range(starts[source], starts[source] + lengths[source]):
                     seen[cells[j]] = 1
                     cells[n_cells] = cells[j]
                     n_cells += 1
-            plane = planes[index]
-            mx, my, mz, nx, ny, nz = plane[0], plane[1], plane[2], plane[3], plane[4], plane[5]
-            fx, fy, fz, sx, sy, sz = plane[6], plane[7], plane[8], plane[9], plane[10], plane[11]
-            for i in range(patch):
-                p = start + i
-                offset = strength * ((points[p, 0] - mx) * nx + (points[p, 1] - my) * ny + (points[p, 2] - mz) * nz)
-                moved_x[i] = points[p, 0] - offset * nx
-                moved_y[i] = points[p, 1] - offset * ny
-                moved_z[i] = points[p, 2] - offset * nz
+            row = moved_row[option]
+            moved_x, moved_y, moved_z = moved[row, 0], moved[row, 1], moved[row, 2]
+            if not made[row]:
+                made[row] = True
+                strength = strengths[option]
+                for i in range(patch):
+                    p = start + i
+                    offset = strength * ((points[p, 0] - mx) * nx + (points[p, 1] - my) * ny
+                                         + (points[p, 2] - mz) * nz)
+                    moved_x[i] = points[p, 0] - offset * nx
+                    moved_y[i] = points[p, 1] - offset * ny
+                    moved_z[i] = points[p, 2] - offset * nz
             if not copied:
                 _cells_inside(moved_x, moved_y, moved_z, low, box, frame, voxel, grid_low, grid_shape, own)
             for j in range(n_copies):
                 for i in range(patch):
-                    u, v = disk_u[j, i], disk_v[j, i]
+                    u, v = disk_u[option, j, i], disk_v[option, j, i]
                     extra_x[i] = moved_x[i] + u * fx + v * sx
                     extra_y[i] = moved_y[i] + u * fy + v * sy
                     extra_z[i] = moved_z[i] + u * fz + v * sz
@@ -309,10 +330,23 @@ def _option_cells_kernel(points, patch, strengths, copies, radii, low, box, gold
                         seen[cell] = 1
                         cells[n_cells] = cell
                         n_cells += 1
-            ends[option * n_patches + index] = n_cells
+            entry = option * n_patches + index
+            starts[entry], lengths[entry] = listed, n_cells - listed
             for j in range(listed, n_cells):
                 seen[cells[j]] = 0
     return n_cells
+
+
+@compiled
+def _gather_lists(made, starts, lengths, cells, offsets):
+    """The lists made[starts[l]:starts[l] + lengths[l]] one after the other in `cells`, list l ending at
+    offsets[l + 1]."""
+    n = 0
+    for entry in range(starts.shape[0]):
+        for j in range(starts[entry], starts[entry] + lengths[entry]):
+            cells[n] = made[j]
+            n += 1
+        offsets[entry + 1] = n
 
 
 @compiled
