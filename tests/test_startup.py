@@ -32,6 +32,7 @@ def test_info_imports_no_heavy_library(tmp_path):
 
 def test_compress_loads_no_scipy_linalg_and_kernels_with_a_blas_still_compile():
     probe = ("import sys\nimport numpy as np\nimport mapsqueeze\nrng = np.random.default_rng(0)\n"
+             "import mapsqueeze.codec.compress\nmapsqueeze.codec.compress.NUMPY_KERNEL_POINTS = 0\n"  # numba's kernels
              "points = np.c_[rng.random((3000, 2)) * 30, rng.normal(1, 0.05, 3000)]\n"
              "assert len(mapsqueeze.compress(points, model='e0', workers=1)) > 0\n"
              "print('scipy.linalg' in sys.modules)\n"

@@ -44,6 +44,11 @@ from mapsqueeze.io import PointCloud, validate_attributes, work_dir
 MAX_REFINE_STEPS = 10_000
 """Encode-time refinement steps accepted at most per tile (`CompressionModel.refine`; a guard against typos)."""
 
+NUMPY_KERNEL_POINTS = 15_000
+"""Maps of at most this many points are encoded with numpy's versions of the compiled kernels (`TileJob.compiled`
+False; the same bytes): loading numba costs a process 0.5-0.6 CPU-s, more than numpy's versions spend on such
+maps (BENCHMARKS.md "Where a small compress spends its start-up")."""
+
 
 @dataclass(frozen=True)
 class AttributeOptions:
@@ -104,8 +109,8 @@ def compress_map(
     """
     check_refine_steps(refine_steps)
     models, tile_size = _model_list(model)
-    kernels = _load_kernels_meanwhile(dask_scheduler)
     points = validate_points(points, name="map")
+    kernels = _load_kernels_meanwhile(dask_scheduler) if len(points) > NUMPY_KERNEL_POINTS else None
     attributes = validate_attributes(attributes, len(points), name="map")
     schema = _attribute_schema(_ranges(attributes), metadata, attribute_options)
     origin, shape = fit_grid(*bounding_box(points), tile_size)
@@ -148,7 +153,7 @@ def compress_chunks(
     """
     check_refine_steps(refine_steps)
     models, tile_size = _model_list(model)
-    kernels = _load_kernels_meanwhile(dask_scheduler)
+    kernels = None
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
     ranges: dict[str, tuple[np.dtype, float, float]] = {}
     metadata = None
@@ -162,6 +167,8 @@ def compress_chunks(
             previous = ranges.get(name, (dtype, low, high))
             ranges[name] = (dtype, min(low, previous[1]), max(high, previous[2]))
         n_points += len(chunk)
+        if kernels is None and n_points > NUMPY_KERNEL_POINTS:  # a map the compiled kernels encode
+            kernels = _load_kernels_meanwhile(dask_scheduler)
     if n_points == 0:
         raise InvalidPointCloudError("map: the point cloud is empty")
     schema = _attribute_schema(ranges, metadata, attribute_options)
@@ -233,7 +240,8 @@ them (the command line starts without numba)."""
 
 def _load_kernels_meanwhile(dask_scheduler: str | None) -> threading.Thread | None:
     """A started thread that imports ENCODER_KERNEL_MODULES and loads numba's registries (what the first kernel
-    call does: ~0.4-0.5 s in all) while this one reads and tiles the map, on a core the reading leaves idle; join it
+    call does: ~0.4-0.5 s in all) while this one reads and tiles a map of more than NUMPY_KERNEL_POINTS points
+    (started once that many are read), on a core the reading leaves idle; join it
     once the map is read (tiles encoded before, as `compress_chunks` streams them, wait for the modules on Python's
     import locks and for the registries on numba's compiler lock). It does nothing with a single core, on a Dask
     cluster (whose workers import their own; the coordinator would hold numba's memory for nothing) or once the
@@ -316,10 +324,11 @@ def _compress_tiles(
     (as a streamed map's tiles are spilled), for the first model's embeddings instead of tile_source(); n_tiles is
     then at least their count (it only sizes the executor)."""
     best = None
+    compiled = n_points > NUMPY_KERNEL_POINTS
     for position, model in enumerate(models):
         first = first_tiles is not None and position == 0
         encoded = _embed_tiles(first_tiles if first else tile_source(), n_tiles, origin, model, refine_steps,
-                               workers, dask_scheduler)
+                               workers, dask_scheduler, compiled)
         encoded.sort(key=lambda tile: tile.index)  # first_tiles come as they are read
         n_tiles = len(encoded)
 
@@ -329,7 +338,7 @@ def _compress_tiles(
 
         latent = _fit_latent(encoded, model, precision, position_step_m, feature_step_std)
         _tile_candidates(encoded, tile_source(), origin, model, latent, target, workers, dask_scheduler,
-                         tile_progress)
+                         tile_progress, compiled)
         streams = AttributeCoder(tile_source, model, schema, workers, dask_scheduler)
         weights = [tile.n_points for tile in encoded]
         if target.bpp is None:
@@ -407,9 +416,10 @@ def _network_bytes(tile: EncodedTile) -> int | None:
 
 def _embed_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,
                  origin: np.ndarray, model, refine_steps: int, workers: int | None,
-                 dask_scheduler: str | None) -> list[EncodedTile]:
+                 dask_scheduler: str | None, compiled: bool = True) -> list[EncodedTile]:
     """Every tile's embedding with one model, by `workers` threads or a Dask cluster (`codec.executor`)."""
-    job = TileJob(model, origin, np.asarray(model.config.tile_size, dtype=np.float64), refine_steps)
+    job = TileJob(model, origin, np.asarray(model.config.tile_size, dtype=np.float64), refine_steps,
+                  compiled=compiled)
     return _run(embed_job, job, tile_points, n_tiles, workers, dask_scheduler, lambda done, total: None)
 
 
@@ -438,13 +448,13 @@ def _fit_latent(encoded: list[EncodedTile], model, precision: Precision, positio
 
 def _tile_candidates(encoded: list[EncodedTile], tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]],
                      origin: np.ndarray, model, latent: LatentCodec, target: RateTarget, workers: int | None,
-                     dask_scheduler: str | None, progress: ProgressCallback) -> None:
+                     dask_scheduler: str | None, progress: ProgressCallback, compiled: bool = True) -> None:
     """Every tile's candidate codings (`candidates_job`), set in `encoded` in place: the network's payload is
     coded here with the map-wide `latent` codec, the workers decode it as the decoder will."""
     state = ByteWriter()  # the codec as the header stores it (its entropy models do not pickle)
     latent.write(state)
     job = TileJob(model, origin, np.asarray(model.config.tile_size, dtype=np.float64), target=target,
-                   latent=(latent.precision, latent.layout, state.getvalue()))
+                   latent=(latent.precision, latent.layout, state.getvalue()), compiled=compiled)
     payloads = [None if tile.points is None else latent.encode(tile.points, tile.features) for tile in encoded]
     items = ((tile.index, tile.n_embedding, payload, index, points)
              for tile, payload, (index, points, _) in zip(encoded, payloads, tile_points))

@@ -48,7 +48,11 @@ def sample_indices(n: int, size: int = SAMPLE_POINTS) -> np.ndarray:
     return bounds[:-1] + offsets.astype(np.int64)
 
 
-def _grid(points: np.ndarray):
+def _grid(points: np.ndarray, compiled: bool = True):
+    if not compiled:  # the same distances from a k-d tree, without numba (small maps)
+        from mapsqueeze.geometry.nearestnumpy import NearestTree
+
+        return NearestTree(points)
     from mapsqueeze.geometry.nearest import NearestGrid  # numba: imported here, the CLI starts without it
 
     return NearestGrid(points)
@@ -56,13 +60,15 @@ def _grid(points: np.ndarray):
 
 class CandidateDistortion:
     """The D_e (metres) of each decoded candidate of one tile against the tile's points: `add` each candidate's
-    decoded points, then `settle` gives their D_e in the order added (exact throughout when `exact`)."""
+    decoded points, then `settle` gives their D_e in the order added (exact throughout when `exact`). compiled=False
+    searches k-d trees instead of the compiled grids (the same distances without numba)."""
 
-    def __init__(self, points: np.ndarray, exact: bool = False):
+    def __init__(self, points: np.ndarray, exact: bool = False, compiled: bool = True):
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.exact = exact
+        self.compiled = compiled
         self._tree = None
-        self._grid = None if exact else _grid(self.points)
+        self._grid = None if exact else _grid(self.points, compiled)
         self._sample = self.points[sample_indices(len(self.points))]
         self._decoded: list[tuple[np.ndarray, OwnDistances | None] | None] = []
         self._values: list[float] = []
@@ -103,6 +109,6 @@ class CandidateDistortion:
         to_decoded = np.full(len(points), np.nan) if own is None else own(points)
         unknown = np.isnan(to_decoded)
         if unknown.any():
-            to_decoded[unknown] = _grid(decoded).distances(points[unknown])
+            to_decoded[unknown] = _grid(decoded, self.compiled).distances(points[unknown])
         to_tile = self._grid.distances(decoded[sample_indices(len(decoded))])
         return float(to_decoded.mean() / 2 + to_tile.mean() / 2)

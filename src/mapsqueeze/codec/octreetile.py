@@ -109,11 +109,15 @@ def decode_octree_tile(payload: bytes, tile_size: np.ndarray, max_points: int, w
 
 
 def own_leaf_distances(points_local: np.ndarray, tile_size: np.ndarray, leaf_m: float,
-                       extent_m: np.ndarray) -> np.ndarray:
+                       extent_m: np.ndarray, compiled: bool = True) -> np.ndarray:
     """(N,) float64 distance (metres) from each point (relative to the tile frame) to the nearest leaf centre of
     its octree at leaf_m as `tilepoints.octree_points` places them (inside [0, extent_m]), where that is the centre
-    of the point's own leaf (always occupied); NaN where it may not be (`geometry.cells.own_cell_distances`)."""
-    from mapsqueeze.geometry.cells import own_cell_distances  # imported here: the CLI starts without numba
+    of the point's own leaf (always occupied); NaN where it may not be (`geometry.cells.own_cell_distances`;
+    compiled=False: `geometry.cellsnumpy`'s, the same values without numba)."""
+    if compiled:
+        from mapsqueeze.geometry.cells import own_cell_distances  # imported here: the CLI starts without numba
+    else:
+        from mapsqueeze.geometry.cellsnumpy import own_cell_distances
 
     leaf = float(np.float32(leaf_m))
     return own_cell_distances(points_local, leaf, (1 << octree_depth(tile_size, leaf)) - 1,

@@ -219,7 +219,7 @@ def apply_patch_filter(decoded: np.ndarray, byte: int, upsampling_factors, exten
 
 
 def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain: np.ndarray, upsampling_factors,
-                        frame_m: np.ndarray, extent_m: np.ndarray) -> int:
+                        frame_m: np.ndarray, extent_m: np.ndarray, compiled: bool = True) -> int:
     """The setting byte of OFF and PATCH_CANDIDATES, in that order, whose output has the highest IoU with the
     tile's points (`metrics.iou`'s world-anchored grid), where two extra points per point must also gain
     PATCH_EXTRA_COPY_MIN_IOU_GAIN over one; ties go to the earlier, so OFF unless a setting gains.
@@ -228,15 +228,19 @@ def choose_patch_filter(original_world: np.ndarray, uncropped: np.ndarray, plain
     with these upsampling factors) and plain: its points inside the tile's box [0, extent_m] (the paper's decode),
     both in tile-local metres relative to the world point `frame_m`. The candidates' outputs are marked on one
     occupancy grid as they are made (`occupancy.patch_setting_ious`), or made whole (`apply_patch_filter`) where
-    that grid does not serve."""
-    from mapsqueeze.geometry.occupancy import occupancy_ious, patch_setting_ious  # numba: the encoder's alone
+    that grid does not serve. compiled=False: numpy's versions of the kernels (`geometry.occupancynumpy`: the
+    same IoUs without loading numba, for small maps)."""
+    if compiled:
+        from mapsqueeze.geometry.occupancy import occupancy_ious, patch_setting_ious  # numba: the encoder's alone
+    else:
+        from mapsqueeze.geometry.occupancynumpy import occupancy_ious, patch_setting_ious
 
     settings = (OFF, *PATCH_CANDIDATES)
     patch = int(np.prod(upsampling_factors[-PATCH_LEVELS:], dtype=np.int64))
     ious = patch_setting_ious(original_world, uncropped, patch, PATCH_STRENGTH, PATCH_COPIES, PATCH_RADIUS_M,
                               extent_m, frame_m, IOU_VOXEL_M)
     if ious is None:
-        clouds = [plain] + [apply_patch_filter(uncropped, byte, upsampling_factors, extent_m, compiled=True)
+        clouds = [plain] + [apply_patch_filter(uncropped, byte, upsampling_factors, extent_m, compiled=compiled)
                             for byte in PATCH_CANDIDATES]
         ious = occupancy_ious(original_world, clouds, frame_m, IOU_VOXEL_M) or \
             [iou(original_world, cloud.astype(np.float64) + frame_m) for cloud in clouds]  # a box too large for a grid
@@ -334,8 +338,8 @@ class PatchChoiceSearch:
 
 
 def search_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsampling_factors, frame_m: np.ndarray,
-                         extent_m: np.ndarray, byte: int, copy_weight: float = 0.0, payload_bytes: int = 0
-                         ) -> PatchChoiceSearch | None:
+                         extent_m: np.ndarray, byte: int, copy_weight: float = 0.0, payload_bytes: int = 0,
+                         compiled: bool = True) -> PatchChoiceSearch | None:
     """The tile's patch choices (one per embedding point) of a greedy search (`occupancy.patch_option_ious`,
     PATCH_CHOICE_SWEEPS sweeps from the option of the tile's setting `byte`) for the highest IoU with the tile's
     points, or, with a model's `copy_weight` > 0 (`ModelConfig.patch_choice_copy_weight`), for that weighed IoU and
@@ -344,8 +348,12 @@ def search_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
     (`patch_choice_prefix` decides whether they pay).
 
     original_world: the tile's (N, 3) points in world metres; uncropped: the network's whole (K, 3) output for the
-    embedding the decoder sees, in its order, tile-local metres relative to the world point `frame_m`."""
-    from mapsqueeze.geometry.occupancy import patch_option_ious  # numba: loaded only where choices are searched
+    embedding the decoder sees, in its order, tile-local metres relative to the world point `frame_m`.
+    compiled=False: numpy's version of the search (`geometry.occupancynumpy`: the same choices without numba)."""
+    if compiled:
+        from mapsqueeze.geometry.occupancy import patch_option_ious  # numba: loaded only where choices are searched
+    else:
+        from mapsqueeze.geometry.occupancynumpy import patch_option_ious
 
     patch = int(np.prod(upsampling_factors, dtype=np.int64))  # the points of one embedding point
     start = np.full(len(uncropped) // patch, start_option(byte), dtype=np.int64)

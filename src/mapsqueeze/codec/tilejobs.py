@@ -71,6 +71,7 @@ class TileJob:
     refine_steps: int = 0
     target: RateTarget = RateTarget()
     latent: tuple | None = None  # the latent codec (precision, layout, `LatentCodec.write`'s state)
+    compiled: bool = True  # False: numpy's versions of the compiled kernels (the same bytes, no numba loaded)
 
 
 def _tile_frame(job: TileJob, index: tuple[int, int, int], points: np.ndarray
@@ -89,7 +90,7 @@ def embed_job(job: TileJob, item: tuple[tuple[int, int, int], np.ndarray, dict])
     network's embedding (refined when asked), or none when the tile is too sparse for the network."""
     index, points, _ = item
     lo, hi, extent, _, local = _tile_frame(job, index, points)
-    embedding = job.model.encode(local)
+    embedding = job.model.encode(local, compiled=job.compiled)
     n_embedding = len(embedding.points)
     if len(local) <= RAW_POINTS_PER_EMBEDDING * n_embedding:  # too sparse for the network and the octree
         return EncodedTile(index, len(local), lo, hi, extent, n_embedding, None, None)
@@ -129,7 +130,7 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
     ("auto")."""
     model, target, tile_size = job.model, job.target, job.tile_size
     lo, _, extent, frame, local = _tile_frame(job, index, tile_points)
-    distortion = CandidateDistortion(local, exact=target.given or target.post_filter == "auto")
+    distortion = CandidateDistortion(local, exact=target.given or target.post_filter == "auto", compiled=job.compiled)
 
     def competing(payload: bytes) -> bool:  # the default rule picks among the candidates no larger than the network
         return target.given or network_bytes is None or len(payload) <= network_bytes
@@ -144,7 +145,7 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
     leaves = OCTREE_LEAVES_M if target.fallback else ()
     for leaf, (payload, centres) in zip(leaves, encode_octree_tiles(local, tile_size, leaves)):
         distortion.add(lambda centres=centres: octree_points(centres, extent, None),
-                       lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent),
+                       lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent, job.compiled),
                        competing(payload))
         classical.append((TileCoding.octree, payload, f"octree {leaf:g} m"))
     post_filter, search = OFF, None
@@ -157,10 +158,10 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
             uncropped = model.decode(*embedding)
             decoded = keep_inside(uncropped, extent)
             post_filter = choose_patch_filter(local + frame, uncropped, decoded, model.config.upsampling_factors,
-                                              frame, extent)
+                                              frame, extent, job.compiled)
             if target.given and post_filter != OFF:
                 decoded = apply_patch_filter(uncropped, post_filter, model.config.upsampling_factors, extent,
-                                             compiled=True)
+                                             compiled=job.compiled)
         else:
             decoded = network_points(model, *embedding, extent, None)
         distortion.add(decoded)
@@ -169,7 +170,7 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
             del distortion, decoded  # the candidates' decodes and trees: the search's arrays take their memory
             search = search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped,
                                           model.config.upsampling_factors, frame, extent, post_filter,
-                                          model.config.patch_choice_copy_weight, network_bytes)
+                                          model.config.patch_choice_copy_weight, network_bytes, job.compiled)
     return _candidates(classical, d_e), network_d_e, post_filter, search
 
 

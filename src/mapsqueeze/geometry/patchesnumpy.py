@@ -7,6 +7,7 @@ the compiled kernel."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from functools import partial
 
 import numpy as np
@@ -85,6 +86,13 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
     """`patch_planes` of whole patches whose first point is row `first` of the cloud (the disk samples' index;
     per_patch: numbered from each patch's first point instead), before the crop: the (K (1 + copies), 3) float32
     points and the mask of those inside the box."""
+    return reworked_points(fit_planes(points, patch), first, strength, copies, radius_m, low, box, per_patch)
+
+
+def fit_planes(points: np.ndarray, patch: int) -> tuple:
+    """The planes of whole patches, what `reworked_points` needs of them under any option: the points' x, y, z
+    ((n_patches, patch) float64 each), the patches' unit normals and tangents (x, y, z of each: (n_patches,)) and
+    each point's offset from its patch's plane before the pull strength ((n_patches, patch))."""
     n_patches = len(points) // patch
     x, y, z = np.ascontiguousarray(points.T, dtype=np.float64).reshape(3, n_patches, patch)
     by_rank = np.ascontiguousarray(points.reshape(n_patches, patch, 3).transpose(1, 2, 0),
@@ -105,8 +113,8 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
     length = np.sqrt(fx * fx + fy * fy + fz * fz)
     fx, fy, fz = fx / length, fy / length, fz / length
     sx, sy, sz = ny * fz - nz * fy, nz * fx - nx * fz, nx * fy - ny * fx
-    # offset = (x - mean) n_x + (y - mean) n_y + (z - mean) n_z, times the strength: each difference and product
-    # rounded as before, added in that order
+    # offset = (x - mean) n_x + (y - mean) n_y + (z - mean) n_z (times the strength later): each difference and
+    # product rounded as before, added in that order
     offset = np.subtract(x, mean[0][:, None])
     offset *= nx[:, None]
     term = np.empty_like(offset)
@@ -114,29 +122,18 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
         np.subtract(column, centre[:, None], out=term)
         term *= normal[:, None]
         offset += term
-    offset *= strength
-    out = np.empty((len(points), 1 + copies, 3), dtype=np.float32)
-    if copies:
-        sample = np.arange(0 if per_patch else first * copies,
-                           (patch if per_patch else first + len(points)) * copies, dtype=np.float64)
-        product = sample * GOLDEN_FRACTION
-        radius = radius_m * np.sqrt(product - np.floor(product))  # % 1.0 of these non-negative numbers, exactly
-        angle = sample * GOLDEN_ANGLE
-        u = (radius * np.cos(angle)).reshape(-1, patch, copies)  # (1, patch, copies) per patch: the same samples
-        v = (radius * np.sin(angle)).reshape(-1, patch, copies)
-        along, across = np.empty((n_patches, patch, copies)), np.empty((n_patches, patch, copies))
-    moved = term
-    for axis, (column, normal, first_tangent, second_tangent) in enumerate(((x, nx, fx, sx), (y, ny, fy, sy),
-                                                                            (z, nz, fz, sz))):
-        np.multiply(offset, normal[:, None], out=moved)
-        np.subtract(column, moved, out=moved)
+    return x, y, z, (nx, ny, nz), (fx, fy, fz), (sx, sy, sz), offset
+
+
+def reworked_points(planes: tuple, first: int, strength: float, copies: int, radius_m: float, low: np.float32,
+                    box: np.ndarray, per_patch: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """`_block`'s points and mask from the patches' `fit_planes` (the same bytes as fitting them again)."""
+    n_patches, patch = planes[0].shape
+    out = np.empty((n_patches * patch, 1 + copies, 3), dtype=np.float32)
+    for axis, (moved, extra) in enumerate(reworked_axes(planes, first, strength, copies, radius_m, per_patch)):
         out[:, 0, axis] = moved.ravel()
         if copies:
-            np.multiply(u, first_tangent[:, None, None], out=along)
-            along += moved[..., None]
-            np.multiply(v, second_tangent[:, None, None], out=across)
-            along += across
-            out[:, 1:, axis] = along.reshape(-1, copies)
+            out[:, 1:, axis] = extra.reshape(-1, copies)
     out = out.reshape(-1, 3)
     inside = out[:, 0] >= low  # in place, as `tilepoints.keep_inside`
     inside &= out[:, 0] <= box[0]
@@ -144,6 +141,36 @@ def _block(points: np.ndarray, first: int, patch: int, strength: float, copies: 
         inside &= out[:, axis] >= low
         inside &= out[:, axis] <= box[axis]
     return out, inside
+
+
+def reworked_axes(planes: tuple, first: int, strength: float, copies: int, radius_m: float,
+                  per_patch: bool = False) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """`reworked_points`'s float64 coordinates before their float32 rounding, axis after axis: the moved points'
+    ((n_patches, patch)) and their extra points' ((n_patches, patch, copies); None without), in arrays that the
+    next axis overwrites."""
+    x, y, z, normals, first_tangents, second_tangents, unscaled = planes
+    n_patches, patch = x.shape
+    offset = unscaled * strength
+    along = None
+    if copies:
+        sample = np.arange(0 if per_patch else first * copies,
+                           (patch if per_patch else first + n_patches * patch) * copies, dtype=np.float64)
+        product = sample * GOLDEN_FRACTION
+        radius = radius_m * np.sqrt(product - np.floor(product))  # % 1.0 of these non-negative numbers, exactly
+        angle = sample * GOLDEN_ANGLE
+        u = (radius * np.cos(angle)).reshape(-1, patch, copies)  # (1, patch, copies) per patch: the same samples
+        v = (radius * np.sin(angle)).reshape(-1, patch, copies)
+        along, across = np.empty((n_patches, patch, copies)), np.empty((n_patches, patch, copies))
+    moved = np.empty_like(offset)
+    for column, normal, first_tangent, second_tangent in zip((x, y, z), normals, first_tangents, second_tangents):
+        np.multiply(offset, normal[:, None], out=moved)
+        np.subtract(column, moved, out=moved)
+        if copies:
+            np.multiply(u, first_tangent[:, None, None], out=along)
+            along += moved[..., None]
+            np.multiply(v, second_tangent[:, None, None], out=across)
+            along += across
+        yield moved, along
 
 
 def _running_sum(values: np.ndarray) -> np.ndarray:

@@ -71,12 +71,13 @@ class CompressionModel:
         keep = np.sort(rng.choice(len(points_local), self.config.max_input_points, replace=False))
         return points_local[keep]
 
-    def encode(self, points_local: np.ndarray) -> Embedding:
+    def encode(self, points_local: np.ndarray, compiled: bool = True) -> Embedding:
         """Tile-local points (N,3) metres -> embedding (positions in metres, features). Like `refine` and `decode`,
-        the same bytes whatever the thread count."""
+        the same bytes whatever the thread count. compiled=False: on the CPU, numpy's versions of the encoder's
+        compiled kernels (the same bytes without loading numba; `InferenceNetwork.encode`)."""
         points = np.asarray(self.select_input(points_local), dtype=np.float32) / self._scale
         if self.device == "cpu":
-            return self._embedding(*self.inference.encode(points))
+            return self._embedding(*self.inference.encode(points, compiled))
         from mapsqueeze.model.autoencoder import torch_encode
 
         return self._embedding(*torch_encode(self.network, points))

@@ -185,19 +185,27 @@ class InferenceNetwork:
         return _Deconv(factor, hidden, first, weights.linear(f"{name}.offset_mlp.2", hidden, 3 * factor),
                        weights.linear(f"{name}.feature_mlp.2", hidden, n_out * factor))
 
-    def encode(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """points (N, 3) float32 normalised -> embedding points (M, 3), features (M, embedding_dim) float32."""
+    def encode(self, points: np.ndarray, compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """points (N, 3) float32 normalised -> embedding points (M, 3), features (M, embedding_dim) float32.
+        compiled=False runs numpy's versions of the compiled kernels (`geometry.gridnumpy`,
+        `influencesnumpy`): the same bytes, no numba loaded (small maps, `codec.compress.NUMPY_KERNEL_POINTS`)."""
         points = np.ascontiguousarray(points, dtype=np.float32)
         features = np.ones((len(points), 1), dtype=np.float32)  # occupancy
         with one_blas_thread():
             for block in self.encoder:
-                points, features = self._encoder_block(block, points, features)
+                points, features = self._encoder_block(block, points, features, compiled)
             return points, _affine(features, self.embedding)
 
-    def _encoder_block(self, block: _EncoderBlock, points: np.ndarray, features: np.ndarray):
+    def _encoder_block(self, block: _EncoderBlock, points: np.ndarray, features: np.ndarray, compiled: bool = True):
         """`kpconv.EncoderBlock.forward`: grid subsampling, KPConv of the capped radius neighbours, ResNet sum."""
-        from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors  # numba: the encoder's alone
-        from mapsqueeze.model.influences import bias_leaky_relu, cpu_influences
+        if compiled:
+            from mapsqueeze.geometry.grid import grid_subsample, radius_neighbors  # numba: the encoder's alone
+            from mapsqueeze.model.influences import bias_leaky_relu, cpu_influences
+        else:
+            from mapsqueeze.geometry.gridnumpy import grid_subsample, radius_neighbors
+            from mapsqueeze.model.influencesnumpy import cpu_influences
+
+            bias_leaky_relu = _bias_leaky_relu
 
         kept = grid_subsample(points, block.grid_size)
         queries = np.ascontiguousarray(points[kept])
