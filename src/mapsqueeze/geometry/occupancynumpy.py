@@ -97,9 +97,10 @@ def patch_option_ious(original: np.ndarray, uncropped: np.ndarray, patch: int, o
     _mark_voxels(original, np.zeros(3), voxel, low, shape, 1, grid)
     n_original = int(np.count_nonzero(grid))
     lists, counts = [], []  # per option: the patches' distinct cells, patch after patch, and their counts
+    moved: dict = {}  # strength -> the voxels of its moved points and whether they are inside the box
     for strength, copies, radius_m in options:
         cells, per_patch = _option_cells(planes, float(strength), int(copies), float(radius_m), box_low, box,
-                                         frame_m, voxel, low, shape)
+                                         frame_m, voxel, low, shape, moved)
         lists.append(cells)
         counts.append(per_patch)
     cells = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int64)
@@ -119,25 +120,36 @@ cache)."""
 
 
 def _option_cells(planes: tuple, strength: float, copies: int, radius_m: float, box_low: np.float32,
-                  box: np.ndarray, frame: np.ndarray, voxel: np.ndarray, low: np.ndarray, shape: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  box: np.ndarray, frame: np.ndarray, voxel: np.ndarray, low: np.ndarray, shape: np.ndarray,
+                  moved: dict) -> tuple[np.ndarray, np.ndarray]:
     """(the distinct grid cells of each patch, ascending, patch after patch; their count per patch) of the
     points of the patches (`fit_planes`) under one option (`reworked_points`, disk samples numbered from each
     patch's first point) that lie inside the box. Made patch range by patch range; each patch's cells are numbered
     within the box of its voxels and marked on one bitmap of all the patches' boxes (no sort), or sorted where
-    those boxes are too large for it."""
+    those boxes are too large for it. `moved`: strength -> the voxels of the moved points of an option with no
+    extra points and whether they lie inside the box (((patches, patch) per axis), (patches, patch)), kept here
+    for the options with that strength and extra points, whose moved points are the same."""
     n_patches, patch = planes[0].shape
+    known = moved.get(strength) if copies else None
     step = max(1, CHUNK_ROWS // (patch * (1 + copies)))
-    local, corner, dims = [], [], []  # per chunk: each kept point's number in its patch's box; the boxes
+    local, corner, dims, made = [], [], [], []  # per chunk: each kept point's number in its patch's box; the boxes
     for first in range(0, n_patches, step):
         part = tuple(_patch_rows(value, first, first + step) for value in planes)
         count = len(part[0])
-        values = [np.empty((count, patch * (1 + copies)), dtype=np.float32) for _ in range(3)]  # per patch:
-        for a, (moved, extra) in enumerate(reworked_axes(part, 0, strength, copies, radius_m, per_patch=True)):
-            values[a][:, :patch] = moved  # its moved points, then its extra points
+        own = patch * copies if known is not None else patch * (1 + copies)  # the points made here, per patch:
+        values = [np.empty((count, own), dtype=np.float32) for _ in range(3)]  # its moved, then its extra points
+        for a, (coordinates, extra) in enumerate(reworked_axes(part, 0, strength, copies, radius_m,
+                                                               per_patch=True)):
+            if known is None:
+                values[a][:, :patch] = coordinates
             if copies:
-                values[a][:, patch:] = extra.reshape(count, -1)
+                values[a][:, own - patch * copies:] = extra.reshape(count, -1)
         axes, inside = _voxels(values, box_low, box, frame, voxel, low)
+        if known is not None:
+            axes = [np.concatenate([known[0][a][first:first + count], axes[a]], axis=1) for a in range(3)]
+            inside = np.concatenate([known[1][first:first + count], inside], axis=1)
+        elif not copies:
+            made.append((axes, inside))
         lowest = np.stack([values.min(axis=1) for values in axes], axis=1)
         sizes = np.stack([values.max(axis=1) for values in axes], axis=1) - lowest + 1
         number = axes[0] - lowest[:, 0, None]
@@ -150,6 +162,9 @@ def _option_cells(planes: tuple, strength: float, copies: int, radius_m: float, 
         dims.append(sizes)
     if not n_patches:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    if made and strength not in moved:
+        moved[strength] = ([np.concatenate([axes[a] for axes, _ in made]) for a in range(3)],
+                           np.concatenate([inside for _, inside in made]))
     corner, dims = np.concatenate(corner), np.concatenate(dims)
     volume = np.prod(dims, axis=1)
     start = np.cumsum(volume) - volume  # each patch's box on the bitmap
@@ -257,22 +272,29 @@ def _greedy_choices(original: np.ndarray, n_original: int, cells: np.ndarray, of
                     n_patches: int, choice: np.ndarray, sweeps: int, bonus: list[float], bit_weight: float,
                     rate_sweeps: int) -> tuple[float, float]:
     """`occupancy._greedy_choices` (the same arguments, with bonus a list; `choice` updated in place; the same
-    (IoU before, IoU after))."""
+    (IoU before, IoU after)). A patch's options are valued at once, each value with the kernel's operations (the
+    counts are whole numbers, exact in float64); the best is the patch's current option where it reaches the
+    largest value, else the first that does (the kernel's order of comparisons)."""
     occupied = np.zeros(len(original), dtype=np.int32)  # chosen patches per cell
     lists = [[cells[offsets[k * n_patches + i]:offsets[k * n_patches + i + 1]] for k in range(n_options)]
              for i in range(n_patches)]
     together = [np.concatenate(patch_lists) for patch_lists in lists]  # a patch's lists, option after option
     option_of = [np.repeat(np.arange(n_options), [len(cells) for cells in patch_lists]) for patch_lists in lists]
-    sizes = [[max(1, len(cells)) for cells in patch_lists] for patch_lists in lists]
-    on_original = [np.bincount(options, weights=original[listed], minlength=n_options).astype(np.int64).tolist()
-                   for options, listed in zip(option_of, together)]
+    on_original = [original[listed] for listed in together]
+    weights = np.array(bonus, dtype=np.float64)
+    credit = [weights * np.bincount(options, weights=listed & (weights > 0.0)[options], minlength=n_options)
+              / np.array([max(1, len(cells)) for cells in patch_lists], dtype=np.float64)
+              for options, listed, patch_lists in zip(option_of, on_original, lists)]
+    # the bits' term of an option chosen by `count` other patches: -log2 of its share, as the kernel (the C library's)
+    log_share = np.array([math.log2((count + 0.5) / (n_patches - 1 + 0.5 * n_options))
+                          for count in range(n_patches + 1)])
     for i in range(n_patches):
         np.add.at(occupied, lists[i][choice[i]], 1)
     held = occupied > 0
     shared = int(np.count_nonzero(held & original))
     false = int(np.count_nonzero(held)) - shared
     before = shared / max(1, n_original + false)
-    counts = np.bincount(choice, minlength=n_options).tolist()  # patches per option
+    counts = np.bincount(choice, minlength=n_options)  # patches per option
     for phase in range(2):
         rate = bit_weight if phase else 0.0
         for _ in range(rate_sweeps if phase else sweeps):
@@ -286,18 +308,12 @@ def _greedy_choices(original: np.ndarray, n_original: int, cells: np.ndarray, of
                 shared -= int(np.count_nonzero(emptied))
                 false -= len(emptied) - int(np.count_nonzero(emptied))
                 free = occupied[together[i]] == 0
-                gained_free = np.bincount(option_of[i], weights=free & original[together[i]], minlength=n_options)
-                free_count = np.bincount(option_of[i], weights=free, minlength=n_options)
-                best, best_value = current, -math.inf
-                for option, (gained, free_cells) in enumerate(zip(gained_free.tolist(), free_count.tolist())):
-                    gained, added = int(gained), int(free_cells) - int(gained)
-                    credit = bonus[option] * (on_original[i][option] if bonus[option] > 0.0 else 0) \
-                        / sizes[i][option]
-                    value = (shared + gained + credit) / max(1, n_original + false + added)
-                    if rate > 0.0:
-                        value += rate * math.log2((counts[option] + 0.5) / (n_patches - 1 + 0.5 * n_options))
-                    if value > best_value or (value == best_value and option == current):
-                        best, best_value = option, value
+                gained = np.bincount(option_of[i], weights=free & on_original[i], minlength=n_options)
+                added = np.bincount(option_of[i], weights=free, minlength=n_options) - gained
+                values = (shared + gained + credit[i]) / np.maximum(1.0, n_original + false + added)
+                if rate > 0.0:
+                    values += rate * log_share[counts]
+                best = current if values[current] == values.max() else int(np.argmax(values))
                 if best != current:
                     changed = True
                     choice[i] = best
