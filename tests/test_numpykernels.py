@@ -34,7 +34,8 @@ EXTENT = np.array([12.0, 12.0, 4.0])
 def tie_keys() -> list[np.ndarray]:
     """Sort keys with long runs of ties, sorted and reversed runs, float32 ties and tiny arrays."""
     cases = [np.zeros(100, np.float32), np.arange(1000, dtype=np.float32), np.arange(1000, dtype=np.float32)[::-1],
-             np.r_[np.arange(5000), np.arange(5000)[::-1]].astype(np.float32), (np.arange(30000) % 7).astype(np.float32),
+             np.r_[np.arange(5000), np.arange(5000)[::-1]].astype(np.float32),
+             (np.arange(30000) % 7).astype(np.float32),
              np.float32(1000) + np.random.default_rng(4).random(30000).astype(np.float32) * np.float32(0.7),
              np.round(np.random.default_rng(2).random(20000) * 50) / np.float32(50)]
     for seed in range(60):
@@ -275,7 +276,8 @@ def test_a_small_compress_loads_no_numba_and_a_larger_one_does(tmp_path):
              "points = np.c_[rng.random((3000, 2)) * 30, rng.normal(1, 0.05, 3000)]\n"
              "assert len(mapsqueeze.compress(points, model='e3', workers=2)) > 0\n"
              "print('numba' in sys.modules)\n"
-             "more = np.c_[rng.random((compress.NUMPY_KERNEL_POINTS + 1, 2)) * 30, np.ones(compress.NUMPY_KERNEL_POINTS + 1)]\n"
+             "n = compress.NUMPY_KERNEL_POINTS + 1\n"
+             "more = np.c_[rng.random((n, 2)) * 30, np.ones(n)]\n"
              "assert len(mapsqueeze.compress(more, model='e3', workers=1)) > 0\n"
              "print('numba' in sys.modules)\n")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path)
