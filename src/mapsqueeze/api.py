@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapsqueeze.codec.attributes import CONTINUOUS, AttributeSchema
+from mapsqueeze.codec.attributes import CONSTANT, CONTINUOUS, AttributeSchema
 from mapsqueeze.codec.compress import AttributeOptions, ProgressCallback, compress_chunks, compress_map
 from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, TileCoding, open_container
 from mapsqueeze.codec.decompress import (
@@ -203,6 +203,7 @@ class ContainerInfo:
         if not schema or not schema.specs:
             return "none"
         parts = [f"{spec.name} ({spec.dtype.name}, " + (f"median, step {spec.step:.6g})" if spec.kind == CONTINUOUS
+                                                        else f"constant {spec.constant(1)[0]})" if spec.kind == CONSTANT
                                                         else "majority)") for spec in schema.specs]
         return (", ".join(parts) + f"; voxel {schema.voxel_m:g} m; {self.attribute_bytes:,} bytes, "
                 f"{8.0 * self.attribute_bytes / self.n_points:.4f} bits per point")

@@ -8,6 +8,8 @@ their median (the value that minimises the mean absolute error), quantised to `s
 categorical attributes (other integers: labels, classification, ring, return number) their most frequent value, as
 an index into the tile's sorted palette. Values are coded coarse to fine with predictions from already-decoded
 voxels (`codec.attrfield`). A decoded point, at any density, takes the values of its nearest support voxel.
+An attribute that holds one value over the whole map (bit for bit: LAS fields such as user_data or point_source_id
+often do) is stored in the schema as that value (container version 8) and has no part in the tiles' streams.
 Layout: docs/format.md, "Attributes"; streams of container versions 1 and 2 are read by `codec.attrlegacy`.
 """
 
@@ -52,7 +54,9 @@ MIN_VOXEL_M = 0.01
 CONTINUOUS_NAMES = frozenset({"intensity", "reflectance", "red", "green", "blue", "nir", "gps_time", "time",
                               "timestamp", "scan_angle", "range"})
 """Integer attributes with these names are continuous (median, quantised); other integers are categorical."""
-CONTINUOUS, CATEGORICAL = 0, 1
+CONTINUOUS, CATEGORICAL, CONSTANT = 0, 1, 2
+CONSTANT_VERSION = 8
+"""First container version whose schema may hold constant attributes (kind CONSTANT); written only by files that do."""
 _MAX_ATTRIBUTES = 255
 _MAX_METADATA_BYTES = 1 << 24
 MAX_PALETTE = 1 << 20
@@ -60,14 +64,20 @@ MAX_PALETTE = 1 << 20
 
 @dataclass(frozen=True)
 class AttributeSpec:
-    """One coded attribute: name, numpy dtype (restored on decoding), kind, and for continuous ones the
-    quantisation origin `low` and `step` (value = low + q * step)."""
+    """One coded attribute: name, numpy dtype (restored on decoding), kind, for continuous ones the quantisation
+    origin `low` and `step` (value = low + q * step), for constant ones the `value` every point has (`dtype`'s
+    bytes)."""
 
     name: str
     dtype: np.dtype
     kind: int
     low: float = 0.0
     step: float = 1.0
+    value: bytes = b""
+
+    def constant(self, count: int) -> np.ndarray:
+        """`count` copies of a constant attribute's value."""
+        return np.full(count, np.frombuffer(self.value, dtype=self.dtype)[0], dtype=self.dtype)
 
 
 @dataclass(frozen=True)
@@ -77,6 +87,16 @@ class AttributeSchema:
     voxel_m: float
     specs: tuple[AttributeSpec, ...]
     metadata: dict
+
+    @property
+    def coded(self) -> tuple[AttributeSpec, ...]:
+        """The attributes the tiles' streams code (all but the constant ones), in schema order."""
+        return tuple(spec for spec in self.specs if spec.kind != CONSTANT)
+
+    @property
+    def version(self) -> int | None:
+        """The container version this schema needs beyond the compact layout's (None: any)."""
+        return CONSTANT_VERSION if len(self.coded) < len(self.specs) else None
 
     def serialise(self) -> bytes:
         writer = ByteWriter()
@@ -88,14 +108,19 @@ class AttributeSchema:
             writer.raw(name)
             writer.pack("B", len(dtype))
             writer.raw(dtype)
-            writer.pack("Bdd", spec.kind, spec.low, spec.step)
+            if spec.kind == CONSTANT:
+                writer.pack("B", spec.kind)
+                writer.raw(spec.value)
+            else:
+                writer.pack("Bdd", spec.kind, spec.low, spec.step)
         metadata = zlib.compress(json.dumps(self.metadata, sort_keys=True).encode(), 9) if self.metadata else b""
         writer.varint(len(metadata))
         writer.raw(metadata)
         return writer.getvalue()
 
     @classmethod
-    def read(cls, reader: ByteReader) -> "AttributeSchema":
+    def read(cls, reader: ByteReader, constants: bool = False) -> "AttributeSchema":
+        """The schema at the reader; constants: constant attributes are allowed (container version 8)."""
         (voxel_m, count) = reader.unpack("dB")
         if not (np.isfinite(voxel_m) and voxel_m >= MIN_VOXEL_M):
             raise reader.fail(f"attribute voxel of {voxel_m} m")
@@ -106,9 +131,20 @@ class AttributeSchema:
                 dtype = np.dtype(reader.raw(reader.unpack("B")[0]).decode())
             except (UnicodeDecodeError, TypeError, ValueError):
                 raise reader.fail("bad attribute name or dtype") from None
-            kind, low, step = reader.unpack("Bdd")
-            if dtype.kind not in "iuf" or kind not in (CONTINUOUS, CATEGORICAL) or not np.isfinite([low, step]).all() \
-                    or step <= 0 or name in {spec.name for spec in specs}:
+            (kind,) = reader.unpack("B")
+            if dtype.kind not in "iuf" or name in {spec.name for spec in specs} \
+                    or kind not in ((CONTINUOUS, CATEGORICAL, CONSTANT) if constants else (CONTINUOUS, CATEGORICAL)):
+                raise reader.fail(f"bad attribute {name!r}" + (f" (kind {kind})" if kind == CONSTANT else ""))
+            if kind == CONSTANT:
+                if dtype.itemsize not in (1, 2, 4, 8):
+                    raise reader.fail(f"constant attribute {name!r} of dtype {dtype.str}")
+                value = reader.raw(dtype.itemsize)
+                if dtype.kind == "f" and not np.isfinite(np.frombuffer(value, dtype=dtype)[0]):
+                    raise reader.fail(f"constant attribute {name!r} is not finite")
+                specs.append(AttributeSpec(name, dtype, kind, value=value))
+                continue
+            low, step = reader.unpack("dd")
+            if not np.isfinite([low, step]).all() or step <= 0:
                 raise reader.fail(f"bad attribute {name!r}")
             specs.append(AttributeSpec(name, dtype, kind, low, step))
         length = reader.varint(limit=_MAX_METADATA_BYTES)
@@ -141,9 +177,37 @@ def parse_selection(selection: str | list[str] | tuple[str, ...] | None, names: 
     return [name for name in names if name in wanted]
 
 
-def build_schema(ranges: dict[str, tuple[np.dtype, float, float]], voxel_m: float, relative_step: float,
+@dataclass(frozen=True)
+class ValueRange:
+    """An attribute's values over (part of) a map: dtype, minimum, maximum, and the value's bytes when every value
+    is the same bit for bit (else None)."""
+
+    dtype: np.dtype
+    low: float
+    high: float
+    constant: bytes | None
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> "ValueRange":
+        values = np.asarray(values)
+        constant = None
+        if len(values) and values.dtype.itemsize in (1, 2, 4, 8):
+            bits = values.view(f"u{values.dtype.itemsize}")
+            if bits.min() == bits.max():
+                constant = values[:1].tobytes()
+        return cls(values.dtype, float(values.min()), float(values.max()), constant)
+
+    def merge(self, other: "ValueRange") -> "ValueRange":
+        """The range of both parts' values."""
+        same = self.constant == other.constant and self.dtype == other.dtype
+        return ValueRange(other.dtype, min(self.low, other.low), max(self.high, other.high),
+                          self.constant if same else None)
+
+
+def build_schema(ranges: dict[str, ValueRange], voxel_m: float, relative_step: float,
                  metadata: dict) -> AttributeSchema:
-    """The schema for attributes with their map-wide (dtype, minimum, maximum)."""
+    """The schema for attributes with their map-wide value ranges: an attribute with one value (bit for bit) is
+    stored as that constant, the others coded per tile."""
     if not (np.isfinite(voxel_m) and voxel_m >= MIN_VOXEL_M):
         raise InvalidPointCloudError(f"attribute voxel must be at least {MIN_VOXEL_M} m, got {voxel_m}")
     if not (np.isfinite(relative_step) and MIN_RELATIVE_STEP <= relative_step <= 1):
@@ -152,10 +216,13 @@ def build_schema(ranges: dict[str, tuple[np.dtype, float, float]], voxel_m: floa
     if len(ranges) > _MAX_ATTRIBUTES:
         raise InvalidPointCloudError(f"{len(ranges)} attributes; at most {_MAX_ATTRIBUTES} can be coded")
     specs = []
-    for name, (dtype, low, high) in ranges.items():
+    for name, value_range in ranges.items():
+        dtype, low, high = value_range.dtype, value_range.low, value_range.high
         if not np.isfinite([low, high]).all():
             raise InvalidPointCloudError(f"attribute {name!r} has NaN or infinite values")
-        if is_continuous(name, dtype):
+        if value_range.constant is not None:
+            specs.append(AttributeSpec(name, dtype, CONSTANT, value=value_range.constant))
+        elif is_continuous(name, dtype):
             step = max((high - low) * relative_step, 1.0 if dtype.kind in "iu" else 0.0)
             specs.append(AttributeSpec(name, dtype, CONTINUOUS, float(low), float(step) if step > 0 else 1.0))
         else:
@@ -193,7 +260,7 @@ def encode_tile_attributes(support: np.ndarray, points_local: np.ndarray, attrib
     lod = LevelsOfDetail(codes)
     writer, symbols = ByteWriter(), SymbolWriter()
     write_support_check(writer, codes)
-    for spec in schema.specs:
+    for spec in schema.coded:
         own = np.asarray(attributes[spec.name], dtype=np.float64)
         values = np.concatenate([own[nearest], own])
         if spec.kind == CONTINUOUS:
@@ -228,7 +295,13 @@ def decode_tile_attributes(stream: bytes, support: np.ndarray, points_local: np.
     else:
         centres = (morton_cells(codes) + 0.5) * schema.voxel_m
         nearest = KDTree(centres).query(np.asarray(points_local, dtype=np.float64), k=1)[1].astype(np.int64)
-    return {spec.name: restore(spec, values[nearest]) for spec, values in zip(schema.specs, per_voxel)}
+    return with_constants(schema, {spec.name: restore(spec, values[nearest])
+                                   for spec, values in zip(schema.coded, per_voxel)}, len(nearest))
+
+
+def with_constants(schema: AttributeSchema, coded: dict[str, np.ndarray], count: int) -> dict[str, np.ndarray]:
+    """Every attribute of `count` decoded points in schema order: the coded ones' values and the constants."""
+    return {spec.name: spec.constant(count) if spec.kind == CONSTANT else coded[spec.name] for spec in schema.specs}
 
 
 def _support_values(stream: bytes, support: np.ndarray, schema: AttributeSchema, tile_size: np.ndarray, what: str,
@@ -263,7 +336,7 @@ def _voxel_values(reader: ByteReader, codes: np.ndarray, schema: AttributeSchema
     """Each attribute's values per support voxel from the rest of the stream (tables, then one ANS stream consumed
     exactly)."""
     tables = []
-    for spec in schema.specs:
+    for spec in schema.coded:
         if spec.kind == CATEGORICAL:
             tables.append((read_palette(reader, len(codes), spec.name), read_category_tables(reader)))
         else:
@@ -271,7 +344,7 @@ def _voxel_values(reader: ByteReader, codes: np.ndarray, schema: AttributeSchema
     symbols = SymbolReader(reader.raw(reader.remaining), reader.what)
     lod = LevelsOfDetail(codes)
     per_voxel = []
-    for spec, (palette, histograms) in zip(schema.specs, tables):
+    for spec, (palette, histograms) in zip(schema.coded, tables):
         if palette is None:
             per_voxel.append(decode_integers(symbols, lod, histograms))
             continue

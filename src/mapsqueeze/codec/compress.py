@@ -16,6 +16,7 @@ from mapsqueeze.codec.attributes import (
     DEFAULT_RELATIVE_STEP,
     DEFAULT_VOXEL_M,
     AttributeSchema,
+    ValueRange,
     build_schema,
     parse_selection,
 )
@@ -64,7 +65,7 @@ class AttributeOptions:
     relative_step: float = DEFAULT_RELATIVE_STEP
 
 
-def _attribute_schema(ranges: dict[str, tuple[np.dtype, float, float]], metadata: dict | None,
+def _attribute_schema(ranges: dict[str, ValueRange], metadata: dict | None,
                       options: AttributeOptions) -> AttributeSchema | None:
     """The schema of the selected attributes, or None when there is nothing to code (a geometry-only file)."""
     names = parse_selection(options.selection, list(ranges))
@@ -74,8 +75,8 @@ def _attribute_schema(ranges: dict[str, tuple[np.dtype, float, float]], metadata
                         metadata or {})
 
 
-def _ranges(attributes: dict[str, np.ndarray]) -> dict[str, tuple[np.dtype, float, float]]:
-    return {name: (values.dtype, float(values.min()), float(values.max())) for name, values in attributes.items()}
+def _ranges(attributes: dict[str, np.ndarray]) -> dict[str, ValueRange]:
+    return {name: ValueRange.of(values) for name, values in attributes.items()}
 
 
 def compress_map(
@@ -155,7 +156,7 @@ def compress_chunks(
     models, tile_size = _model_list(model)
     kernels = None
     lowest, highest, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
-    ranges: dict[str, tuple[np.dtype, float, float]] = {}
+    ranges: dict[str, ValueRange] = {}
     metadata = None
     boxes = []  # each chunk's bounding box
     for chunk in _checked_clouds(chunks()):
@@ -163,9 +164,8 @@ def compress_chunks(
         boxes.append((chunk_low, chunk_high))
         lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
         metadata = chunk.metadata if metadata is None else metadata
-        for name, (dtype, low, high) in _ranges(chunk.attributes).items():
-            previous = ranges.get(name, (dtype, low, high))
-            ranges[name] = (dtype, min(low, previous[1]), max(high, previous[2]))
+        for name, value_range in _ranges(chunk.attributes).items():
+            ranges[name] = ranges[name].merge(value_range) if name in ranges else value_range
         n_points += len(chunk)
         if kernels is None and n_points > NUMPY_KERNEL_POINTS:  # a map the compiled kernels encode
             kernels = _load_kernels_meanwhile(dask_scheduler)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapsqueeze.codec.attributes import AttributeSchema
+from mapsqueeze.codec.attributes import CONSTANT_VERSION, AttributeSchema
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.codec.header import COMPACT_VERSION, Header
 from mapsqueeze.codec.postfilter import OFF, PATCH_VERSION, check_setting
@@ -26,11 +26,13 @@ from mapsqueeze.geometry.validation import MAX_ABS_COORDINATE_M
 
 MAGIC = b"MSQZ"
 VERSION = COMPACT_VERSION
-"""The version written. Readable besides: 6 (post-filter bytes may select patch choices,
+"""The version written, or CONSTANT_VERSION (8: the same layout, its attribute schema may hold attributes stored
+as one constant value, `codec.attributes.CONSTANT`) by a file whose schema holds one, so that every other file keeps
+its bytes. Readable besides: 6 (post-filter bytes may select patch choices,
 `codec.postfilter.PATCH_CHOICES`), 5 (patch planes, `codec.postfilter.PATCH`), 4 (a decode post-filter byte per
 tile), 3 (attribute streams coded on the decoded geometry, `codec.attributes`), 2 (attribute streams with their
 own voxels, `codec.attrlegacy`) and 1 (also no default-count field, network and raw tiles only)."""
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8)
 ATTRIBUTES_ON_DECODED_GEOMETRY = 3
 """First version whose attribute streams are coded on the tiles' decoded geometry."""
 POST_FILTER_VERSION = 4
@@ -135,7 +137,7 @@ class AttributeSection:
     """What follows the payloads when ATTRIBUTES_FLAG is set: the schema and one attribute stream per tile."""
 
     schema: AttributeSchema
-    streams: list[bytes]  # table order; empty when the schema codes no attribute (metadata only)
+    streams: list[bytes]  # table order; empty when the schema codes no attribute per tile (metadata, constants)
 
     def serialise(self) -> bytes:
         index = ByteWriter()
@@ -148,9 +150,9 @@ class AttributeSection:
 
 
 def serialise_container(header: Header, tiles: list[TileRecord], attributes: AttributeSection | None = None) -> bytes:
-    """The complete version 7 file: magic, version, flags and the header and table lengths, the header, the tile
-    table, their CRC, the payloads in table order, then the attribute section when `attributes` is given (without
-    it the bytes are those of a geometry-only file)."""
+    """The complete version 7 file (version 8 when the attribute schema holds a constant attribute): magic, version,
+    flags and the header and table lengths, the header, the tile table, their CRC, the payloads in table order, then
+    the attribute section when `attributes` is given (without it the bytes are those of a geometry-only file)."""
     body = header.serialise()
     table = ByteWriter()
     for tile in tiles:
@@ -172,7 +174,8 @@ def serialise_container(header: Header, tiles: list[TileRecord], attributes: Att
         table.pack("I", zlib.crc32(tile.payload))
     entries = table.getvalue()
     head = ByteWriter()
-    head.raw(_MAGIC_VERSION.pack(MAGIC, COMPACT_VERSION))
+    version = (attributes.schema.version if attributes else None) or VERSION
+    head.raw(_MAGIC_VERSION.pack(MAGIC, version))
     head.varint(0 if attributes is None else ATTRIBUTES_FLAG)
     head.varint(len(body))
     head.varint(len(entries))
@@ -222,9 +225,9 @@ class ContainerReader:
         if zlib.crc32(raw[:size]) != _CRC.unpack(raw[size:])[0]:
             raise self._error("attribute section CRC mismatch (corrupt attribute section)")
         reader = ByteReader(raw[:size], f"{self.name}: attribute section")
-        self.attribute_schema = AttributeSchema.read(reader)
+        self.attribute_schema = AttributeSchema.read(reader, constants=self.version >= CONSTANT_VERSION)
         offset = start + size + _CRC.size
-        if self.attribute_schema.specs:
+        if self.attribute_schema.coded:
             for _ in self.entries:
                 length = reader.varint(limit=2**32)
                 (crc,) = reader.unpack("I")

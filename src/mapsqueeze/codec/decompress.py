@@ -8,7 +8,7 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from mapsqueeze.codec.attributes import decode_tile_attributes
+from mapsqueeze.codec.attributes import decode_tile_attributes, with_constants
 from mapsqueeze.codec.attrlegacy import decode_legacy_tile_attributes
 from mapsqueeze.codec.container import (
     ATTRIBUTES_ON_DECODED_GEOMETRY,
@@ -308,6 +308,8 @@ def iter_tile_points(
                     if attributes and reader.attribute_entries:
                         values = _tile_attributes(reader, position, local, native,
                                                   count is None and not faces[position])
+                    elif attributes and schema and schema.specs:  # constant attributes only
+                        values = with_constants(schema, {}, len(local))
                     tile = DecodedTile(tile_frame(header, reader.entries[position]), local, values, metadata)
                     del local, native, values  # the tile's points are released once its consumer is done
                     yield tile

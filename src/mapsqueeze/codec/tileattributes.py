@@ -29,7 +29,7 @@ class AttributeCoder:
         self._coded: dict[tuple[int, str], bytes] = {}
 
     def streams(self, geometry: bytes, choices: list[Candidate]) -> list[bytes]:
-        if not self.schema.specs:
+        if not self.schema.coded:
             return []
         reader, stream = open_container(geometry)
         with stream:
