@@ -19,6 +19,7 @@ which prints the digests of that commit's own decode:
 | 4 | 3c189ac | network 0x1f, network 0x07, raw | 3c189ac |
 | 5 | c4fe0ae (last before version 6, 4007bf6) | network 0x20, network 0x20, raw | c4fe0ae |
 | 6 | d88b8a7 | network 0x80 (patch choices), network 0x20, raw | d88b8a7 |
+| 7 | 1b67df4 (the last before version 8, written only with constant attributes: later commits write these bytes) | network 0x80, network 0x20, raw | 1b67df4 |
 
 Version 2 has its own fixture (`tests/data/attributes_v2.msq`, `test_attribute_field.py`).
 
@@ -81,6 +82,11 @@ FIXTURES = {
                     "points": "673d1d82d3955cdcf7b3768337697a2fa21e93a6309bbabefa97040a290eba34",
                     "classification": "b0b5271913e51c3e9857b9fd668c9563ec3a1492d9e14335bfc90697390d52a9",
                     "intensity": "fa7bb915444d798733435cfbe874a5b22aedec6eaca6ab939911efc4b73d3937"}},
+    "compat_v7": {"version": 7, "tiles": [(NETWORK, 0x80), (NETWORK, 0x20), (RAW, 0)],
+        "digests": {"count": 104751,
+                    "points": "bb1590af768b47c097647815f5bb46b195cc91f42d116c88148a8d156c8f71c3",
+                    "classification": "b848ccf21df31b868c515950717ad252b4ab6b5e83cb0d1a9a1b807b3338d2f4",
+                    "intensity": "2af675b6fd1f512c332eb7042ee9d33f0c1ea9d610eaa71bc27c0b868a96f629"}},
     "compat_v3_nocrc": {"version": 3, "tiles": [(NETWORK, 0), (NETWORK, 0), (RAW, 0)],
                         "digests": {"count": 49573,
                                     "points": "2d9e99226b0b8b520be21e25f678b2d7f5049a3a62a1cd2fe4fd12a3a31e2ac6",
