@@ -166,7 +166,7 @@ def with_version(data: bytes, version: int) -> bytes:
     return bytes(out)
 
 
-def test_bad_constant_records_are_one_line_errors():
+def test_bad_constant_records_are_one_line_errors(tmp_path, run_cli):
     rng = np.random.default_rng(2)
     points = np.column_stack([rng.uniform(0, 30, 500), rng.uniform(0, 30, 500), rng.uniform(0, 2, 500)]) + UTM
     data = mapsqueeze.compress(points, attributes={"gain": np.full(500, 1.5, np.float32)})
@@ -194,6 +194,9 @@ def test_bad_constant_records_are_one_line_errors():
         with pytest.raises(ContainerError, match=message) as error:
             mapsqueeze.decompress_cloud(crafted)
         assert "\n" not in str(error.value), case
+    (tmp_path / "wide.msq").write_bytes(cases["dtype too wide"][0])
+    code, _, err = run_cli("decompress", str(tmp_path / "wide.msq"), "-o", str(tmp_path / "out.ply"))
+    assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and "dtype <f16" in err
     for position in range(len(index)):  # every byte of the schema changed, the section CRC redone
         crafted = bytearray(index)
         crafted[position] ^= 0x5A
