@@ -75,10 +75,7 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
             cell *= 2
         # a margin of CELLS_PER_RADIUS cells on each side keeps every scanned cell inside the table
         dims = np.floor(extent / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
-        keys = _cell_keys(source, low, cell, dims)
-        order = np.argsort(keys, kind="stable")
-        cell_start = np.concatenate([[0], np.cumsum(np.bincount(keys, minlength=int(np.prod(dims))))])
-        sorted_points = source[order].astype(np.float64)
+        cell_start, order, sorted_points = _cell_table(source, low, cell, dims, CELLS_PER_RADIUS)
         run_over_ranges(lambda first, stop: _capped_neighbors_kernel(
             cell_start, sorted_points, order, queries, first, stop, low, cell, dims, radius * radius, max_neighbors,
             CELLS_PER_RADIUS, result, counts), n_queries)
@@ -89,10 +86,34 @@ CELLS_PER_RADIUS = 2  # cell edge radius / 2: 5 x 5 columns of 5 cells scanned p
 MAX_CELLS = 1 << 22  # cell table entries (int64): 32 MB at most
 
 
-def _cell_keys(points: np.ndarray, low: np.ndarray, cell: float, dims: np.ndarray) -> np.ndarray:
-    """Row-major key (z fastest) of each point's cell, offset by the scan margin of CELLS_PER_RADIUS cells."""
-    c = np.floor((points - low) / cell).astype(np.int64) + CELLS_PER_RADIUS
-    return (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+@compiled
+def _cell_table(points, low, cell, dims, margin):
+    """(cell_start, order, sorted_points) of the points in the search cells: each point's cell key (row-major, z
+    fastest, offset by the scan margin of `margin` cells), its cell the floor of (float64 point - low) / cell; the
+    cell table (the points of cell c are order[cell_start[c]:cell_start[c + 1]]), order listing the points by key,
+    then by index (a counting sort, stable: numpy's stable argsort of the keys); sorted_points (3, N) float64 their
+    coordinates in that order, one row per axis."""
+    n, n_cells = points.shape[0], dims[0] * dims[1] * dims[2]
+    keys = np.empty(n, dtype=np.int64)
+    cell_start = np.zeros(n_cells + 1, dtype=np.int64)
+    for i in range(n):
+        c0 = np.int64(np.floor((np.float64(points[i, 0]) - low[0]) / cell)) + margin
+        c1 = np.int64(np.floor((np.float64(points[i, 1]) - low[1]) / cell)) + margin
+        c2 = np.int64(np.floor((np.float64(points[i, 2]) - low[2]) / cell)) + margin
+        keys[i] = (c0 * dims[1] + c1) * dims[2] + c2
+        cell_start[keys[i] + 1] += 1
+    for c in range(n_cells):
+        cell_start[c + 1] += cell_start[c]
+    fill = cell_start[:n_cells].copy()
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[fill[keys[i]]] = i
+        fill[keys[i]] += 1
+    sorted_points = np.empty((3, n), dtype=np.float64)
+    for s in range(n):
+        for a in range(3):
+            sorted_points[a, s] = np.float64(points[order[s], a])
+    return cell_start, order, sorted_points
 
 
 @compiled
@@ -101,8 +122,10 @@ def _capped_neighbors_kernel(cell_start, sorted_points, order, queries, first, s
     """Fills result[first:stop] and counts[first:stop]: the capped in-radius neighbours of queries[first:stop].
     The queries are visited cell by cell (their results do not depend on the order): the points of a cell's
     5 x 5 x 5 scanned cells are gathered once, in scan order, for all its queries, whose distance tests then run
-    over one contiguous run (vectorised) before the in-radius points are listed."""
+    over one contiguous run (vectorised) before the in-radius points are listed; the spread positions
+    floor(m * j / max_neighbors) are stepped through without a division."""
     n = len(order)
+    xs, ys, zs = sorted_points[0], sorted_points[1], sorted_points[2]
     near_x, near_y, near_z = np.empty(n), np.empty(n), np.empty(n)
     near_index = np.empty(n, dtype=np.int64)
     inside = np.empty(n, dtype=np.uint8)
@@ -125,8 +148,7 @@ def _capped_neighbors_kernel(cell_start, sorted_points, order, queries, first, s
                 for dy in range(span):
                     column = key + (dx * dims[1] + dy) * dims[2]
                     for s in range(cell_start[column], cell_start[column + span]):
-                        near_x[n_near], near_y[n_near], near_z[n_near] = (sorted_points[s, 0], sorted_points[s, 1],
-                                                                          sorted_points[s, 2])
+                        near_x[n_near], near_y[n_near], near_z[n_near] = xs[s], ys[s], zs[s]
                         near_index[n_near] = order[s]
                         n_near += 1
         qx, qy, qz = np.float64(queries[q, 0]), np.float64(queries[q, 1]), np.float64(queries[q, 2])
@@ -140,5 +162,12 @@ def _capped_neighbors_kernel(cell_start, sorted_points, order, queries, first, s
             found[m] = near_index[s]  # kept when in the radius (no branch: the test is unpredictable)
             m += inside[s]
         counts[q] = m
+        step, part = m // max_neighbors, m % max_neighbors
+        spread, remainder = 0, 0  # spread = floor(m * j / max_neighbors), remainder = m * j % max_neighbors
         for j in range(min(m, max_neighbors)):
-            result[q, j] = found[max((m * j) // max_neighbors, j)]
+            result[q, j] = found[max(spread, j)]
+            spread += step
+            remainder += part
+            carry = remainder >= max_neighbors
+            remainder -= carry * max_neighbors
+            spread += carry
