@@ -207,3 +207,20 @@ def test_the_activation_gives_the_same_bits_with_and_without_the_compiled_kernel
     monkeypatch.setitem(sys.modules, "mapsqueeze.model.influences", types.ModuleType("mapsqueeze.model.influences"))
     inference._bias_leaky_relu(importing, bias, np.float32(0.01))
     assert np.array_equal(importing.view(np.uint32), expected.view(np.uint32))
+
+
+def test_encoder_bytes_do_not_depend_on_the_influence_parts(monkeypatch, kitti_submap):
+    """The KPConv's influences are made and multiplied with the neighbours' features in parts of a chunk's queries
+    (`inference.INFLUENCE_PART_ELEMENTS`); each query's product is its own BLAS call, so one query per part, the
+    default parts and one part per chunk give the same embedding bits."""
+    from mapsqueeze.model import inference
+
+    model = load_model("e1")
+    points = kitti_tile(kitti_submap)
+    outputs = []
+    for elements in (1, inference.INFLUENCE_PART_ELEMENTS, 1 << 40):
+        monkeypatch.setattr(inference, "INFLUENCE_PART_ELEMENTS", elements)
+        outputs.append(model.inference.encode(points))
+    for emb_points, emb_features in outputs[1:]:
+        np.testing.assert_array_equal(emb_points, outputs[0][0])
+        np.testing.assert_array_equal(emb_features, outputs[0][1])

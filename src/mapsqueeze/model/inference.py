@@ -30,6 +30,12 @@ DECODE_GROUP_ROWS = 1 << 12
 children depend on it alone), so its activations (~10 MB) mostly stay in the CPU's cache whatever the tile's size.
 (BLAS rounds some products of few rows differently in the last bits: the group size is part of the output.)"""
 
+INFLUENCE_PART_ELEMENTS = 1 << 19
+"""(query, kernel point, neighbour) influences computed per pass of the encoder's KPConv (2 MB of float32): they
+stay in the CPU's cache until their product with the neighbours' features, which runs query by query (one BLAS
+call each), so the part's size leaves the output unchanged; the product with the kernel weights keeps the chunks of
+`kernels.query_chunk` (BLAS rounds products of other row counts differently)."""
+
 LEAKY_BLOCK_ELEMENTS = 1 << 16
 """Elements per pass of the in-place bias and LeakyReLU (256 KB of float32 temporary)."""
 
@@ -215,12 +221,20 @@ class InferenceNetwork:
             features, block.preactivation, self.slope)
         padded = np.concatenate([conv_input, np.zeros((1, conv_input.shape[1]), dtype=np.float32)])
         conv = np.empty((len(queries), block.kernel_weights.shape[1]), dtype=np.float32)
-        chunk = query_chunk(neighbors.shape[1], len(block.kernel_points))
+        n_kernel, n_neighbors = len(block.kernel_points), neighbors.shape[1]
+        chunk = query_chunk(n_neighbors, n_kernel)
+        part = max(1, INFLUENCE_PART_ELEMENTS // max(1, n_neighbors * n_kernel))
+        influences = np.empty((min(part, len(queries)), n_kernel, n_neighbors), dtype=np.float32)
+        weighted = np.empty((min(chunk, len(queries)), n_kernel, padded.shape[1]), dtype=np.float32)  # (Q, M, C)
         for first in range(0, len(queries), chunk):
             stop = min(len(queries), first + chunk)
-            influences = cpu_influences(queries, points, neighbors, block.kernel_points, block.sigma, first, stop)
-            weighted = np.matmul(influences, padded[neighbors[first:stop]])  # (Q, M, C)
-            conv[first:stop] = weighted.reshape(stop - first, -1) @ block.kernel_weights
+            for start in range(first, stop, part):  # per query, the same product whatever the part
+                end = min(stop, start + part)
+                cpu_influences(queries, points, neighbors, block.kernel_points, block.sigma, start, end,
+                               influences[:end - start])
+                np.matmul(influences[:end - start], np.take(padded, neighbors[start:end], axis=0),
+                          out=weighted[start - first:end - first])
+            conv[first:stop] = weighted[:stop - first].reshape(stop - first, -1) @ block.kernel_weights
         conv *= block.post_norm[0]
         bias_leaky_relu(conv, block.post_norm[1], self.slope)
         out = _affine(conv, block.post_linear)
