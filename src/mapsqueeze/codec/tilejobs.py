@@ -26,6 +26,7 @@ from mapsqueeze.codec.postfilter import (
 from mapsqueeze.codec.rawtile import decode_raw_tile, encode_raw_tile
 from mapsqueeze.codec.tilepoints import keep_inside, network_points, octree_points
 from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import to_local
 
 RAW_POINTS_PER_EMBEDDING = 4
@@ -80,7 +81,8 @@ def _tile_frame(job: TileJob, index: tuple[int, int, int], points: np.ndarray
     tile's float64 world points."""
     check_tile_size(index, len(points))
     tile_origin = job.origin + np.asarray(index) * job.tile_size
-    lo, hi = quantise_bounds(points - tile_origin, job.tile_size)
+    # the box of points - tile_origin is its corners' (a subtraction rounds monotonically): no (N, 3) temporary
+    lo, hi = quantise_bounds(np.stack(bounding_box(points)) - tile_origin, job.tile_size)
     frame = frame_origin(tile_origin, lo, job.tile_size)
     return lo, hi, np.subtract(hi, lo) * job.tile_size / BOUNDS_STEPS, frame, to_local(points, frame, job.tile_size)
 

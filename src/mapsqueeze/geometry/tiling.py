@@ -27,7 +27,9 @@ def to_local(points: np.ndarray, origin: np.ndarray, size: np.ndarray | None = N
     With `size`, values that rounding puts just outside the box (float32 rounding up onto its upper face, or
     float64 rounding of a point on a face) are clamped into [0, size): a shift under 4 microns for 40 m boxes.
     """
-    local = (np.asarray(points, dtype=np.float64) - np.asarray(origin, dtype=np.float64)).astype(np.float32)
+    points, origin = np.asarray(points, dtype=np.float64), np.asarray(origin, dtype=np.float64)
+    local = np.empty(np.broadcast_shapes(points.shape, origin.shape), dtype=np.float32)
+    np.subtract(points, origin, out=local, casting="unsafe")  # float64 differences rounded to float32, no temporary
     if size is not None:
         upper = np.nextafter(np.asarray(size, dtype=np.float32), np.float32(0))
         np.clip(local, np.float32(0), upper, out=local)
