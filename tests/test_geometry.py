@@ -19,10 +19,11 @@ from mapsqueeze.geometry.morton import (
 
 
 def brute_force_neighbors(source, queries, radius, cap):
-    """The documented rule by brute force: in-radius neighbours in scan order of radius / 2 cells, evenly capped."""
+    """The documented rule by brute force: in-radius neighbours in scan order of cells a hair over radius / 2,
+    evenly capped."""
     source64, queries64 = source.astype(np.float64), queries.astype(np.float64)
     low = np.minimum(source64.min(axis=0), queries64.min(axis=0))
-    cells = np.floor((source64 - low) / (radius / 2)).astype(np.int64)
+    cells = np.floor((source64 - low) / (radius * (1 + 1e-9) / 2)).astype(np.int64)
     scan_order = np.lexsort((np.arange(len(source)), cells[:, 2], cells[:, 1], cells[:, 0]))
     rank = np.empty(len(source), dtype=np.int64)
     rank[scan_order] = np.arange(len(source))
@@ -61,6 +62,39 @@ def test_radius_neighbors_on_flat_and_degenerate_clouds():
     one = np.zeros((1, 3), dtype=np.float32)
     np.testing.assert_array_equal(radius_neighbors(one, one, 0.1, 8), [[0]])
     assert radius_neighbors(one, one + 1, 0.1, 8).shape == (1, 0)
+
+
+def test_radius_neighbors_on_clusters_with_ties_and_points_on_cell_faces():
+    """Dense clusters (in-radius counts from a few to hundreds over caps that divide them unevenly, so every
+    spread position and remainder of the cap's steps occurs), repeated points (ties in position and cell) and
+    coordinates on multiples of the search cell's edge (points on cell faces), against the brute force."""
+    rng = np.random.default_rng(11)
+    centres = 0.1 + 0.8 * rng.random((12, 3))  # inside [0, 1): the faces grid starts at the lowest corner, 0
+    counts = rng.integers(2, 400, len(centres))
+    clusters = np.vstack([c + rng.normal(0, 0.01 * (1 + i % 4), (n, 3))
+                          for i, (c, n) in enumerate(zip(centres, counts))])
+    faces = np.round(rng.random((600, 3)) / 0.02) * 0.02  # the search cells' edges for radius 0.04 are 0.02
+    source = np.vstack([clusters, faces, clusters[::7]]).astype(np.float32)
+    queries = np.vstack([source[::3], faces[:50] + np.float32(0.01)]).astype(np.float32)
+    for radius, cap in ((0.04, 7), (0.04, 64), (0.025, 1), (0.06, 13)):
+        expected = brute_force_neighbors(source, queries, radius, cap)
+        np.testing.assert_array_equal(radius_neighbors(source, queries, radius, cap), expected)
+        np.testing.assert_array_equal(radius_neighbors(source, queries, radius, cap, np.int32), expected)
+
+
+def test_to_local_rounds_each_float64_difference_to_float32():
+    from mapsqueeze.geometry.tiling import to_local
+
+    rng = np.random.default_rng(12)
+    origin = np.array([1234567.891, -7654321.123, 12.5])
+    points = origin + rng.random((5000, 3)) * 40.0
+    points[:10] = origin + 40.0  # on the upper faces: clamped just inside
+    size = np.full(3, 40.0)
+    expected = (points - origin).astype(np.float32)
+    np.testing.assert_array_equal(to_local(points, origin), expected)
+    clamped = to_local(points, origin, size)
+    assert clamped.dtype == np.float32 and (clamped < np.float32(40.0)).all()
+    np.testing.assert_array_equal(clamped, np.clip(expected, np.float32(0), np.nextafter(np.float32(40), 0)))
 
 
 def test_grid_subsample_keeps_the_point_nearest_each_voxel_centre():
