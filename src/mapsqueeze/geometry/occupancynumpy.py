@@ -213,7 +213,7 @@ def _voxels(values: list[np.ndarray], box_low: np.float32, box: np.ndarray, fram
             low: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
     """(per axis the voxel index from `low` of floor((float64(p) + frame) / voxel), which points lie inside the box
     [box_low, box]) of points given as their float32 x, y and z arrays (`occupancy._mark_voxels`,
-    `patches._cell`, `patches._in_box`)."""
+    `patches._cells_inside`)."""
     inside = np.ones(values[0].shape, dtype=bool)
     axes = []
     for a, coordinate in enumerate(values):
@@ -247,7 +247,7 @@ def _voxel_box(corners: list[np.ndarray], voxel: np.ndarray) -> tuple[np.ndarray
 def _cells(points: np.ndarray, frame: np.ndarray, voxel: np.ndarray, low: np.ndarray, shape: np.ndarray
            ) -> np.ndarray:
     """The flat grid cell of each point's IoU voxel floor((float64(point) + frame) / voxel) (`occupancy._mark_voxels`,
-    `patches._cell`)."""
+    `patches._cells_inside`)."""
     index = np.floor((points.astype(np.float64) + frame) / voxel).astype(np.int64) - low
     return (index[:, 0] * shape[1] + index[:, 1]) * shape[2] + index[:, 2]
 

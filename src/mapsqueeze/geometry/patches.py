@@ -351,9 +351,10 @@ def _gather_lists(made, starts, lengths, cells, offsets):
 
 @compiled
 def _cells_inside(x, y, z, low, box, frame, voxel, grid_low, grid_shape, out):
-    """out[i]: the grid cell of the float32 point (x[i], y[i], z[i]) (as `_cell`) when it lies inside [low, box]
-    (as `_in_box`), else -1; both computed for every point, then one selected (no branch; the bounds held in
-    locals, which the stores to `out` would otherwise make the loop read again)."""
+    """out[i]: the grid cell of the float32 point (x[i], y[i], z[i]), voxel floor((p + frame) / voxel) from
+    grid_low, when it lies inside [low, box] (as `_store_inside`), else -1; both computed for every point, then one
+    selected (no branch; the bounds held in locals, which the stores to `out` would otherwise make the loop read
+    again)."""
     box_x, box_y, box_z = box[0], box[1], box[2]
     frame_x, frame_y, frame_z = frame[0], frame[1], frame[2]
     voxel_x, voxel_y, voxel_z = voxel[0], voxel[1], voxel[2]
@@ -377,21 +378,6 @@ def _disk_sample(sample, radius_m, golden_angle, golden_fraction):
     radius = radius_m * np.sqrt(product - np.floor(product))
     angle = sample * golden_angle
     return radius * np.cos(angle), radius * np.sin(angle)
-
-
-@compiled
-def _in_box(x, y, z, low, box):
-    """Whether the float32 point (x, y, z) lies inside [low, box] (as `_store_inside`)."""
-    return x >= low and y >= low and z >= low and x <= box[0] and y <= box[1] and z <= box[2]
-
-
-@compiled
-def _cell(x, y, z, frame, voxel, grid_low, grid_shape):
-    """The grid cell of the float32 point (x, y, z): voxel floor((p + frame) / voxel) from grid_low."""
-    cx = np.int64(np.floor((np.float64(x) + frame[0]) / voxel[0])) - grid_low[0]
-    cy = np.int64(np.floor((np.float64(y) + frame[1]) / voxel[1])) - grid_low[1]
-    cz = np.int64(np.floor((np.float64(z) + frame[2]) / voxel[2])) - grid_low[2]
-    return (cx * grid_shape[1] + cy) * grid_shape[2] + cz
 
 
 @compiled
