@@ -184,6 +184,10 @@ def test_bad_constant_records_are_one_line_errors(tmp_path, run_cli):
                            "constant attribute 'gain' of dtype <f16"),
         "dtype not numeric": (with_section(data, start, index[:dtype_at] + b"<U1" + index[dtype_at + 3:]),
                               "bad attribute 'gain'"),
+        "dtype numpy parses as Python": (with_section(data, start, index[:dtype_at - 1] + b"\x04u2,)"
+                                                      + index[dtype_at + 3:]), "bad attribute name or dtype"),
+        "dtype of a bad literal": (with_section(data, start, index[:dtype_at] + b"053" + index[dtype_at + 3:]),
+                                   "bad attribute name or dtype"),
         "not finite": (with_section(data, start, index[:value_at] + np.float32(np.nan).tobytes()
                                     + index[value_at + 4:]), "not finite"),
         "unknown kind": (with_section(data, start, index[:value_at - 1] + b"\x03" + index[value_at:]),

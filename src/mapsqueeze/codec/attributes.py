@@ -129,7 +129,7 @@ class AttributeSchema:
             try:
                 name = reader.raw(reader.unpack("B")[0]).decode()
                 dtype = np.dtype(reader.raw(reader.unpack("B")[0]).decode())
-            except (UnicodeDecodeError, TypeError, ValueError):
+            except (UnicodeDecodeError, TypeError, ValueError, SyntaxError):  # numpy parses a comma's parts as Python
                 raise reader.fail("bad attribute name or dtype") from None
             (kind,) = reader.unpack("B")
             if dtype.kind not in "iuf" or name in {spec.name for spec in specs} \
