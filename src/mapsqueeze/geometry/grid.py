@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from mapsqueeze.geometry.bounds import bounding_box
+from mapsqueeze.geometry.gridnumpy import CELLS_PER_RADIUS, MAX_CELLS  # one definition for both paths
 from mapsqueeze.geometry.introsort import introsort_argsort
 from mapsqueeze.geometry.jit import compiled
 from mapsqueeze.geometry.threads import run_over_ranges
@@ -80,10 +81,6 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
             cell_start, sorted_points, order, queries, first, stop, low, cell, dims, radius * radius, max_neighbors,
             CELLS_PER_RADIUS, result, counts), n_queries)
     return np.ascontiguousarray(result[:, :int(min(max_neighbors, counts.max(initial=0)))])
-
-
-CELLS_PER_RADIUS = 2  # cell edge radius / 2: 5 x 5 columns of 5 cells scanned per query
-MAX_CELLS = 1 << 22  # cell table entries (int64): 32 MB at most
 
 
 @compiled

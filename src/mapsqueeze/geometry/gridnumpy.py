@@ -12,9 +12,9 @@ from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.introsortnumpy import introsort_argsort
 
 CELLS_PER_RADIUS = 2
-"""`grid.CELLS_PER_RADIUS`: cell edge radius / 2, 5 x 5 columns of 5 cells scanned per query."""
+"""Cell edge radius / 2 of the radius search (both paths): 5 x 5 columns of 5 cells scanned per query."""
 MAX_CELLS = 1 << 22
-"""`grid.MAX_CELLS`."""
+"""Cell table entries (int64) of the radius search (both paths): 32 MB at most."""
 CHUNK_CANDIDATES = 1 << 16
 """(query, scanned point) pairs tested at once (their temporaries, ~6 MB, stay in the CPU's cache)."""
 
