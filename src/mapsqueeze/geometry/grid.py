@@ -6,11 +6,10 @@ coordinates are normalised (metres / map size), voxel keys and tie-breaking dist
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from mapsqueeze.geometry.bounds import bounding_box
+from mapsqueeze.geometry import gridnumpy
 from mapsqueeze.geometry.gridnumpy import CELLS_PER_RADIUS, MAX_CELLS  # one definition for both paths
 from mapsqueeze.geometry.introsort import introsort_argsort
 from mapsqueeze.geometry.jit import compiled
@@ -26,22 +25,7 @@ def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     (`introsort_argsort`), exactly like the reference, so that ties resolve the same way and its checkpoints keep
     the same embedding points.
     """
-    pts = np.ascontiguousarray(points, dtype=np.float32)
-    if len(pts) == 0:
-        return np.zeros(0, dtype=np.int64)
-    size = np.float32(voxel_size)
-    grid = np.floor(pts / size)
-    dist = ((pts - (grid + np.float32(0.5)) * size) ** 2).sum(axis=1, dtype=np.float32)
-    max_dist = dist.max()
-    if max_dist > 0:
-        dist = dist / max_dist * np.float32(0.7)
-    cells_per_axis = np.float32(math.ceil(1.0 / voxel_size))
-    key = grid[:, 0] + grid[:, 1] * cells_per_axis + grid[:, 2] * cells_per_axis * cells_per_axis
-    order = introsort_argsort(key + dist)
-    sorted_key = key[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = sorted_key[1:] != sorted_key[:-1]
-    return order[first]
+    return gridnumpy.grid_subsample(points, voxel_size, argsort=introsort_argsort)
 
 
 def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int,

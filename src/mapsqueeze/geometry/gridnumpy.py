@@ -19,8 +19,9 @@ CHUNK_CANDIDATES = 1 << 16
 """(query, scanned point) pairs tested at once (their temporaries, ~6 MB, stay in the CPU's cache)."""
 
 
-def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """`grid.grid_subsample` (the same arguments, the same indices) with the numpy introsort."""
+def grid_subsample(points: np.ndarray, voxel_size: float, argsort=introsort_argsort) -> np.ndarray:
+    """`grid.grid_subsample` (the same arguments, the same indices); `argsort` sorts the float32 keys in the order of
+    torch's CPU sort: the numpy introsort here, the compiled one for `grid`."""
     pts = np.ascontiguousarray(points, dtype=np.float32)
     if len(pts) == 0:
         return np.zeros(0, dtype=np.int64)
@@ -32,7 +33,7 @@ def grid_subsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
         dist = dist / max_dist * np.float32(0.7)
     cells_per_axis = np.float32(math.ceil(1.0 / voxel_size))
     key = grid[:, 0] + grid[:, 1] * cells_per_axis + grid[:, 2] * cells_per_axis * cells_per_axis
-    order = introsort_argsort(key + dist)
+    order = argsort(key + dist)
     sorted_key = key[order]
     first = np.ones(len(order), dtype=bool)
     first[1:] = sorted_key[1:] != sorted_key[:-1]
