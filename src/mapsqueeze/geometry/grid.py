@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry import gridnumpy
-from mapsqueeze.geometry.gridnumpy import CELLS_PER_RADIUS, MAX_CELLS  # one definition for both paths
+from mapsqueeze.geometry.gridnumpy import CELLS_PER_RADIUS
 from mapsqueeze.geometry.introsort import introsort_argsort
 from mapsqueeze.geometry.jit import compiled
 from mapsqueeze.geometry.threads import run_over_ranges
@@ -50,16 +49,7 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     result = np.full((n_queries, max_neighbors), n_source, dtype=dtype)
     counts = np.zeros(n_queries, dtype=np.int64)
     if n_source and n_queries and max_neighbors > 0:
-        (source_low, source_high), (query_low, query_high) = bounding_box(source), bounding_box(queries)
-        low = np.minimum(source_low, query_low).astype(np.float64)
-        extent = np.maximum(source_high, query_high) - low
-        # cells of a hair over radius / 2 (round-off cannot skip one), coarser only if the cell table would
-        # exceed MAX_CELLS (a cloud hundreds of radii across: more candidates per query, a coarser scan order)
-        cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS
-        while np.prod(np.floor(extent / cell) + 2 * CELLS_PER_RADIUS + 1) > MAX_CELLS:
-            cell *= 2
-        # a margin of CELLS_PER_RADIUS cells on each side keeps every scanned cell inside the table
-        dims = np.floor(extent / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
+        low, cell, dims = gridnumpy.search_grid(source, queries, radius)
         cell_start, order, sorted_points = _cell_table(source, low, cell, dims, CELLS_PER_RADIUS)
         run_over_ranges(lambda first, stop: _capped_neighbors_kernel(
             cell_start, sorted_points, order, queries, first, stop, low, cell, dims, radius * radius, max_neighbors,

@@ -40,6 +40,20 @@ def grid_subsample(points: np.ndarray, voxel_size: float, argsort=introsort_args
     return order[first]
 
 
+def search_grid(source: np.ndarray, queries: np.ndarray, radius: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """The radius search's cell grid over (N, 3) float32 source and query points, for both paths: its low corner
+    (float64), cell edge and table dims. Cells are a hair over radius / 2 (round-off cannot skip one), coarser only
+    if the table would exceed MAX_CELLS (a cloud hundreds of radii across: more candidates per query, a coarser
+    scan order); a margin of CELLS_PER_RADIUS cells on each side keeps every scanned cell inside the table."""
+    (source_low, source_high), (query_low, query_high) = bounding_box(source), bounding_box(queries)
+    low = np.minimum(source_low, query_low).astype(np.float64)
+    extent = np.maximum(source_high, query_high) - low
+    cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS
+    while np.prod(np.floor(extent / cell) + 2 * CELLS_PER_RADIUS + 1) > MAX_CELLS:
+        cell *= 2
+    return low, cell, np.floor(extent / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
+
+
 def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int,
                      dtype: type = np.int64) -> np.ndarray:
     """`grid.radius_neighbors` (the same arguments, the same padded indices): each query's in-radius neighbours
@@ -53,13 +67,7 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     result = np.full((n_queries, max_neighbors), n_source, dtype=dtype)
     most = 0
     if n_source and n_queries and max_neighbors > 0:
-        (source_low, source_high), (query_low, query_high) = bounding_box(source), bounding_box(queries)
-        low = np.minimum(source_low, query_low).astype(np.float64)
-        extent = np.maximum(source_high, query_high) - low
-        cell = radius * (1 + 1e-9) / CELLS_PER_RADIUS
-        while np.prod(np.floor(extent / cell) + 2 * CELLS_PER_RADIUS + 1) > MAX_CELLS:
-            cell *= 2
-        dims = np.floor(extent / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
+        low, cell, dims = search_grid(source, queries, radius)
         c = np.floor((source - low) / cell).astype(np.int64) + CELLS_PER_RADIUS
         keys = (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
         order = np.argsort(keys, kind="stable")
