@@ -41,12 +41,8 @@ def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max
     kernel scans the 5 x 5 x 5 cells around each query on torch.get_num_threads() threads over contiguous query
     ranges; the result does not depend on the thread count.
     """
-    source = np.ascontiguousarray(source, dtype=np.float32)
-    queries = np.ascontiguousarray(queries, dtype=np.float32)
+    source, queries, result = gridnumpy.neighbour_arrays(source, queries, max_neighbors, dtype)
     n_source, n_queries = len(source), len(queries)
-    if np.iinfo(dtype).max < n_source:
-        raise ValueError(f"{np.dtype(dtype).name} cannot index {n_source:,} points")
-    result = np.full((n_queries, max_neighbors), n_source, dtype=dtype)
     counts = np.zeros(n_queries, dtype=np.int64)
     if n_source and n_queries and max_neighbors > 0:
         low, cell, dims = gridnumpy.search_grid(source, queries, radius)

@@ -54,17 +54,24 @@ def search_grid(source: np.ndarray, queries: np.ndarray, radius: float) -> tuple
     return low, cell, np.floor(extent / cell).astype(np.int64) + 2 * CELLS_PER_RADIUS + 1
 
 
+def neighbour_arrays(source: np.ndarray, queries: np.ndarray, max_neighbors: int,
+                     dtype: type) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The radius search's inputs as contiguous float32 and its (Q, max_neighbors) result of `dtype` filled with the
+    shadow index len(source), for both paths; a `dtype` too narrow to index the source is a ValueError."""
+    source = np.ascontiguousarray(source, dtype=np.float32)
+    queries = np.ascontiguousarray(queries, dtype=np.float32)
+    if np.iinfo(dtype).max < len(source):
+        raise ValueError(f"{np.dtype(dtype).name} cannot index {len(source):,} points")
+    return source, queries, np.full((len(queries), max_neighbors), len(source), dtype=dtype)
+
+
 def radius_neighbors(source: np.ndarray, queries: np.ndarray, radius: float, max_neighbors: int,
                      dtype: type = np.int64) -> np.ndarray:
     """`grid.radius_neighbors` (the same arguments, the same padded indices): each query's in-radius neighbours
     listed in the kernel's scan order (its 5 x 5 columns of 5 search cells, x slowest, each cell's points by
     index), capped as the kernel caps them."""
-    source = np.ascontiguousarray(source, dtype=np.float32)
-    queries = np.ascontiguousarray(queries, dtype=np.float32)
+    source, queries, result = neighbour_arrays(source, queries, max_neighbors, dtype)
     n_source, n_queries = len(source), len(queries)
-    if np.iinfo(dtype).max < n_source:
-        raise ValueError(f"{np.dtype(dtype).name} cannot index {n_source:,} points")
-    result = np.full((n_queries, max_neighbors), n_source, dtype=dtype)
     most = 0
     if n_source and n_queries and max_neighbors > 0:
         low, cell, dims = search_grid(source, queries, radius)
