@@ -1,5 +1,6 @@
-"""Start-up of the command line: loading it imports neither torch nor scipy nor trimesh (~0.5 CPU-s instead of
-~1.5; `mapsqueeze --help` and `mapsqueeze info` stay under a CPU-second)."""
+"""Start-up and end of the command line: loading it imports neither torch nor scipy nor trimesh (~0.5 CPU-s instead
+of ~1.5; `mapsqueeze --help` and `mapsqueeze info` stay under a CPU-second); the program ends without the
+interpreter's teardown once its command is done (`cli.entry`)."""
 
 import subprocess
 import sys
@@ -83,3 +84,48 @@ def test_compress_loads_the_kernels_in_a_thread_once():
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["None", "False"]
+
+
+_ENDING_PROBE = """
+import atexit, sys, threading, time
+
+class Late:
+    def __del__(self):
+        print("teardown ran", flush=True)
+
+late = Late()
+atexit.register(lambda: print("atexit ran"))
+how, thread = sys.argv[1:3]
+if thread == "thread":
+    threading.Thread(target=lambda: (time.sleep(0.5), print("thread done", flush=True))).start()
+sys.argv = ["mapsqueeze", *sys.argv[3:]]
+from mapsqueeze.cli import entry, main
+entry() if how == "entry" else main()
+"""
+
+
+def _ending(how: str, thread: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", _ENDING_PROBE, how, thread, *args], capture_output=True, text=True)
+
+
+def test_the_program_ends_without_the_interpreter_teardown_after_its_output_and_atexit_handlers():
+    """`entry` (the `mapsqueeze` script and `python -m mapsqueeze`) flushes the piped output, runs the atexit
+    handlers and ends at once; `main` (for callers that keep their process) leaves the ending to the interpreter,
+    whose teardown finalises the objects left (the probe's control)."""
+    ended = _ending("entry", "none", "models")
+    assert ended.returncode == 0, ended.stderr
+    assert "e1" in ended.stdout and ended.stdout.rstrip().endswith("atexit ran")
+    assert "teardown ran" not in ended.stdout
+    usual = _ending("main", "none", "models")
+    assert usual.returncode == 0 and "teardown ran" in usual.stdout
+
+
+def test_the_program_keeps_its_exit_code_and_error_line_and_waits_for_running_threads(tmp_path):
+    failed = _ending("entry", "none", "compress", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "m.msq"))
+    assert failed.returncode == 2
+    assert failed.stderr.count("error:") == 1 and "teardown ran" not in failed.stdout
+    assert not (tmp_path / "m.msq").exists()
+    waited = _ending("entry", "thread", "models")  # a thread still running: the usual exit, which joins it
+    assert waited.returncode == 0 and "thread done" in waited.stdout
+    script = subprocess.run([sys.executable, "-m", "mapsqueeze", "models"], capture_output=True, text=True)
+    assert script.returncode == 0 and "e1" in script.stdout

@@ -1,6 +1,6 @@
 """`python -m mapsqueeze ...` (e.g. under `torchrun`): the command-line interface."""
 
-from mapsqueeze.cli import main
+from mapsqueeze.cli import entry
 
 if __name__ == "__main__":
-    main()
+    entry()
