@@ -17,7 +17,7 @@ import pytest
 import mapsqueeze
 from mapsqueeze import api
 from mapsqueeze.errors import MapsqueezeError
-from mapsqueeze.io import DEFAULT_CHUNK_POINTS, read_points, write_points
+from mapsqueeze.io import DEFAULT_CHUNK_POINTS, read_point_cloud, read_points, write_points
 from mapsqueeze.metrics import EVALUATION_STAGES, evaluate
 
 UTM = np.array([500_000.123, 4_000_000.456, 50.0])
@@ -241,6 +241,68 @@ def test_points_at_the_origin_are_dropped_by_default(run_cli, tiny_model_dir, tm
     write_points(source, np.zeros((5, 3)))
     code, _, err = run_cli("compress", str(source), "-o", str(tmp_path / "c.msq"), "--model", str(tiny_model_dir))
     assert code == 2 and "all 5 points lie at (0, 0, 0)" in err and "--keep-zero-points" in err
+
+
+def organised_pcd(path: Path, points: np.ndarray, intensity: np.ndarray) -> Path:
+    """x, y, z and intensity as a binary PCD of 2 rows (an organised cloud), NaN rows as they are."""
+    records = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    records["x"], records["y"], records["z"] = points.T
+    records["intensity"] = intensity
+    header = ("VERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+              f"WIDTH {len(points) // 2}\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA binary\n")
+    path.write_bytes(header.encode() + records.tobytes())
+    return path
+
+
+def test_pcd_points_with_nan_coordinates_are_left_out_by_every_command(run_cli, tiny_model_dir, tmp_path):
+    """compress, convert, eval and view read an organised PCD without its NaN ("no return") points and their
+    attributes, each saying how many; the .msq is the one of the same PCD without those rows."""
+    points = ground().astype(np.float32)
+    intensity = np.random.default_rng(3).uniform(0, 100, 3000).astype(np.float32)
+    missing = np.zeros(3000, bool)
+    missing[::9] = True  # 334
+    points[missing] = np.nan
+    source = organised_pcd(tmp_path / "org.pcd", points, intensity)
+    write_points(tmp_path / "dense.pcd", points[~missing], attributes={"intensity": intensity[~missing]})
+    code, out, err = run_cli("compress", str(source), "-o", str(tmp_path / "org.msq"), "--model", str(tiny_model_dir))
+    assert code == 0 and err == "" and out.startswith("left out 334 points with NaN coordinates (PCD 'no return' "
+                                                      "values)\nwrote ") and out.count("\n") == 2
+    assert mapsqueeze.info(tmp_path / "org.msq").n_points == 2666
+    mapsqueeze.compress_file(tmp_path / "dense.pcd", tmp_path / "dense.msq", str(tiny_model_dir))
+    assert (tmp_path / "org.msq").read_bytes() == (tmp_path / "dense.msq").read_bytes()
+    code, out, _ = run_cli("convert", str(source), str(tmp_path / "org.ply"))
+    assert (code, out) == (0, f"left out 334 points with NaN coordinates (PCD 'no return' values)\n"
+                              f"wrote 2,666 points to {tmp_path / 'org.ply'}\n")
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / "org.ply").attributes["intensity"],
+                                  intensity[~missing])
+    code, out, err = run_cli("eval", str(source), str(tmp_path / "org.ply"), "--json")
+    assert code == 0 and err == f"left out 334 points of {source} with NaN coordinates (PCD 'no return' values)\n"
+    assert json.loads(out)["n_gt"] == 2666 and json.loads(out)["d_e"] == 0.0
+    code, out, _ = run_cli("view", str(tmp_path / "org.msq"), "--original", str(source), "-o",
+                           str(tmp_path / "v.html"), "--max-points", "500")
+    assert code == 0 and out.startswith(f"left out 334 points of {source} with NaN coordinates") and \
+        "original 500 of 2,666" in out
+    # one of each: singular
+    points, intensity = ground(), np.ones(3000)
+    points[7], points[8] = np.nan, 0.0
+    code, out, _ = run_cli("compress", str(organised_pcd(tmp_path / "one.pcd", points, intensity)), "-o",
+                           str(tmp_path / "one.msq"), "--model", str(tiny_model_dir))
+    assert code == 0 and out.startswith("left out 1 point with NaN coordinates (PCD 'no return' values)\n"
+                                        "left out 1 point at exactly (0, 0, 0) (sensor 'no return' values; ")
+
+
+@pytest.mark.parametrize("case", ["all NaN", "infinite"])
+def test_pcd_with_only_nan_or_infinite_coordinates_is_one_error_line(run_cli, tiny_model_dir, tmp_path, case):
+    points = np.full((8, 3), np.nan) if case == "all NaN" else ground()
+    points[-1, 0] = np.nan if case == "all NaN" else np.inf
+    source = organised_pcd(tmp_path / "bad.pcd", points, np.ones(len(points)))
+    expected = ("no points: all 8 points have NaN coordinates" if case == "all NaN"
+                else "1 of 3,000 points has infinite coordinates (the first: point 2,999")
+    for args in (["compress", source, "-o", tmp_path / "bad.msq", "--model", tiny_model_dir],
+                 ["convert", source, tmp_path / "bad.ply"], ["eval", source, source]):
+        code, out, err = run_cli(*map(str, args))
+        assert (code, out) == (2, "") and err.startswith(f"error: {source}: {expected}") and err.count("\n") == 1
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.pcd"]
 
 
 def test_non_finite_points_beyond_the_first_chunk_are_numbered_in_the_map(run_cli, tiny_model_dir, tmp_path):
@@ -607,7 +669,7 @@ def test_help_shows_every_option_whole_in_80_columns(run_cli, monkeypatch):
             for option in param.opts + param.secondary_opts:
                 assert any(f"{option}{after}" in out for after in " ,\n"), (name, option)
     _, out, _ = run_cli("convert", "--help")
-    assert "keeping every attribute and the LAS header's metadata\n  the output format can hold." in out
+    assert "keeping every attribute and the LAS header's metadata\n  the output format can hold;" in out
 
 
 

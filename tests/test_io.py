@@ -163,6 +163,69 @@ def test_pcd_reads_multi_count_and_padding_fields(tmp_path):
     np.testing.assert_allclose(cloud.attributes["normal_2"], [0.3, 0.6], rtol=1e-6)
 
 
+def organised_pcd(path: Path, points: np.ndarray, intensity: np.ndarray, data: str, height: int = 4) -> None:
+    """Write x, y, z (float32) and intensity (uint16) as an organised PCD (`height` rows) with DATA `data`, NaN rows
+    as they are (write_points refuses them)."""
+    records = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<u2")])
+    records["x"], records["y"], records["z"] = points.T
+    records["intensity"] = intensity
+    if data == "binary":
+        body = records.tobytes()
+    else:
+        body = "".join(f"{x!r} {y!r} {z!r} {i}\n" for x, y, z, i in records.tolist()).encode()  # NaN: "nan"
+    header = (f"VERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 2\nTYPE F F F U\nCOUNT 1 1 1 1\n"
+              f"WIDTH {len(points) // height}\nHEIGHT {height}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
+              f"DATA {data}\n")
+    path.write_bytes(header.encode() + body)
+
+
+@pytest.mark.parametrize("data", ["binary", "ascii"])
+def test_pcd_points_with_nan_coordinates_are_left_out_with_their_attributes(tmp_path, data):
+    """Organised PCDs (PCL, ROS drivers) mark a missing return by NaN x, y, z; a NaN in one coordinate counts too."""
+    points = local_cloud(400).astype(np.float32)
+    intensity = np.arange(400, dtype=np.uint16)
+    missing = np.zeros(400, bool)
+    missing[::7] = True
+    points[missing] = np.nan
+    points[[5, 90], [1, 2]] = np.nan  # one NaN coordinate is enough
+    missing[[5, 90]] = True
+    organised_pcd(tmp_path / "scan.pcd", points, intensity, data)
+    cloud = read_point_cloud(tmp_path / "scan.pcd")
+    assert cloud.nan_points_dropped == missing.sum() == 60
+    np.testing.assert_array_equal(cloud.points, points[~missing].astype(np.float64))
+    np.testing.assert_array_equal(cloud.attributes["intensity"], intensity[~missing])
+    np.testing.assert_array_equal(read_points(tmp_path / "scan.pcd"), cloud.points)
+    assert read_point_cloud(tmp_path / "scan.pcd", attributes=False).nan_points_dropped == 60
+    organised_pcd(tmp_path / "dense.pcd", points[~missing], intensity[~missing], data, height=1)
+    assert read_point_cloud(tmp_path / "dense.pcd").nan_points_dropped == 0
+
+
+@pytest.mark.parametrize("data", ["binary", "ascii"])
+def test_pcd_infinite_or_only_nan_coordinates_are_refused(tmp_path, data):
+    points = local_cloud(400).astype(np.float32)
+    points[::7] = np.nan
+    points[[12, 30], [0, 2]] = [np.inf, -np.inf]
+    organised_pcd(tmp_path / "inf.pcd", points, np.zeros(400), data)
+    with pytest.raises(InvalidPointCloudError) as infinite:
+        read_point_cloud(tmp_path / "inf.pcd")
+    assert str(infinite.value) == (f"{tmp_path / 'inf.pcd'}: 2 of 400 points have infinite coordinates (the first: "
+                                   "point 12, counting from 0; NaN marks a missing return in PCD, infinity does not)")
+    organised_pcd(tmp_path / "nan.pcd", np.full((8, 3), np.nan, np.float32), np.zeros(8), data)
+    with pytest.raises(InvalidPointCloudError, match=r"nan.pcd: no points: all 8 points have NaN coordinates"):
+        read_point_cloud(tmp_path / "nan.pcd")
+
+
+def test_nan_coordinates_stay_refused_outside_pcd(tmp_path):
+    """NaN marks a missing return in PCD only: a PLY, .npy or .bin with NaN is refused (see
+    test_non_finite_points_are_counted_and_numbered_in_the_file_not_the_chunk for the message)."""
+    points = local_cloud(50)
+    points[3] = np.nan
+    for name in ("a.ply", "a.npy", "a.bin"):
+        write_raw(tmp_path / name, points)
+        with pytest.raises(InvalidPointCloudError, match="1 of 50 points has NaN or infinite coordinates"):
+            read_point_cloud(tmp_path / name)
+
+
 def test_ply_vertex_list_properties_are_skipped(tmp_path):
     vertices = np.array([(1.0, 2.0, 3.0, 7, [1, 2]), (4.0, 5.0, 6.0, 8, [3])],
                         dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("label", "i4"), ("neighbours", object)])

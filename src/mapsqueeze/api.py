@@ -186,6 +186,7 @@ class ContainerInfo:
     n_raw_tiles: int
     bounds: np.ndarray  # (2, 3) world box of all tiles' points (metres)
     zero_points_dropped: int = 0  # input points at exactly (0, 0, 0) left out (compress_file only)
+    nan_points_dropped: int = 0  # input points with a NaN coordinate left out (a PCD's "no return"; compress_file)
     attribute_schema: AttributeSchema | None = None  # coded attributes and file metadata (None: geometry only)
     attribute_bytes: int = 0  # bytes of the attribute section (schema, metadata, streams)
 
@@ -300,7 +301,8 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
                   attribute_options: AttributeOptions = AttributeOptions(), workers: int | None = None,
                   dask_scheduler: str | None = None) -> ContainerInfo:
     """Read a point-cloud file in chunks, compress it, write the .msq atomically; returns the written file's summary
-    (with `zero_points_dropped`, the points at exactly (0, 0, 0) left out unless keep_zero_points).
+    (with `zero_points_dropped`, the points at exactly (0, 0, 0) left out unless keep_zero_points, and
+    `nan_points_dropped`, a PCD's points with a NaN coordinate, which the reader leaves out).
 
     format: the input's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension). The output
     path is checked before any work. Memory is bounded by a chunk of the input and one tile (see `compress_chunks`),
@@ -313,11 +315,13 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
     check_output_path(output_path, inputs=(input_path,))
     target = _target(max_error, bpp, fallback, post_filter)
     model = _models(model, target)
-    dropped = [0]
+    dropped = [0, 0]  # points at (0, 0, 0), points with a NaN coordinate
 
     def chunks():
-        dropped[0] = kept = 0
+        dropped[:] = [0, 0]
+        kept = 0
         for chunk in iter_point_clouds(input_path, format, COMPRESS_CHUNK_POINTS):
+            dropped[1] += chunk.nan_points_dropped
             if not keep_zero_points:
                 points, n_zero = drop_zero_points(chunk.points, allow_empty=True)
                 if n_zero:
@@ -336,7 +340,7 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
                            attribute_options=attribute_options, workers=workers, dask_scheduler=dask_scheduler,
                            target=target)
     atomic_write_bytes(output_path, data)
-    return dataclasses.replace(info(data), zero_points_dropped=dropped[0])
+    return dataclasses.replace(info(data), zero_points_dropped=dropped[0], nan_points_dropped=dropped[1])
 
 
 def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLike, *, model=None,

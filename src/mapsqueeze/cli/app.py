@@ -51,6 +51,13 @@ def counted(n: int, noun: str) -> str:
     return f"{n:,} {noun}{'' if n == 1 else 's'}"
 
 
+def nan_points_line(count: int, source=None) -> str:
+    """The line a command prints when the reader left out `count` points of the file `source` (if named) whose x,
+    y or z is NaN."""
+    of = "" if source is None else f" of {source}"
+    return f"left out {counted(count, 'point')}{of} with NaN coordinates (PCD 'no return' values)"
+
+
 def make_console(stderr: bool = False) -> Console:
     """The console commands print through: rich on a terminal; piped or redirected, plain lines that are never
     wrapped or coloured (rich would wrap at 80 columns and squeeze wide tables)."""

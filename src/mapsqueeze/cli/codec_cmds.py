@@ -9,7 +9,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from mapsqueeze import api
-from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, parse_numbers
+from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, nan_points_line, parse_numbers
 from mapsqueeze.cli.io_cmds import warn_dropped
 from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
@@ -109,9 +109,11 @@ def compress_command(
                                     keep_zero_points=keep_zero_points, format=in_format,
                                     attribute_options=options, workers=workers, dask_scheduler=dask_scheduler)
     console = make_console()
+    if summary.nan_points_dropped:
+        console.print(nan_points_line(summary.nan_points_dropped))
     if summary.zero_points_dropped:
-        console.print(f"left out {summary.zero_points_dropped:,} points at exactly (0, 0, 0) (sensor 'no return' "
-                      "values; --keep-zero-points keeps them)")
+        console.print(f"left out {counted(summary.zero_points_dropped, 'point')} at exactly (0, 0, 0) (sensor 'no "
+                      "return' values; --keep-zero-points keeps them)")
     modes = ", ".join(f"{count} {mode}" for mode, count in summary.tile_modes.items())
     console.print(f"wrote {output}: {counted(summary.n_points, 'point')} in {counted(summary.n_tiles, 'tile')} "
                   f"({modes}), "

@@ -8,9 +8,9 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mapsqueeze.cli.app import app, make_console
+from mapsqueeze.cli.app import app, make_console, nan_points_line
 from mapsqueeze.errors import MapsqueezeError
-from mapsqueeze.io import read_points
+from mapsqueeze.io import read_point_cloud
 
 
 def _compressed_size(n_bytes: int | None, compressed: Path | None) -> int | None:
@@ -49,7 +49,8 @@ def eval_command(
     compressed: Path | None = typer.Option(None, "--compressed", help="Compressed file whose size gives bpp."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
 ) -> None:
-    """D_e, D_perp, IoU, Chamfer and bits per point of RECON against GT (the paper's Sec. IV-A metrics)."""
+    """D_e, D_perp, IoU, Chamfer and bits per point of RECON against GT (the paper's Sec. IV-A metrics); a PCD's
+    points with a NaN coordinate ('no return') are left out of both, with a count on stderr."""
     from mapsqueeze.metrics import EVALUATION_STAGES, evaluate, overlap_warning  # scipy: imported here
 
     size = _compressed_size(n_bytes, compressed)
@@ -59,9 +60,13 @@ def eval_command(
                    TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal)
     with bar:
         task = bar.add_task(stages[0], total=len(stages))
-        gt_points, recon_points = read_points(gt), read_points(recon)
+        clouds = {path: read_point_cloud(path, attributes=False) for path in (gt, recon)}
+        gt_points, recon_points = clouds[gt].points, clouds[recon].points
         metrics = evaluate(gt_points, recon_points, n_bytes=size, progress=lambda stage: bar.update(
             task, advance=1, description=stage))
+    for path, cloud in clouds.items():
+        if cloud.nan_points_dropped:
+            console.print(nan_points_line(cloud.nan_points_dropped, path))
     warning = overlap_warning(gt_points, recon_points, metrics.d_e)
     if warning:
         console.print(f"warning: {warning}")

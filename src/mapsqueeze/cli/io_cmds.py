@@ -4,7 +4,7 @@ from pathlib import Path
 
 import typer
 
-from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console
+from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, nan_points_line
 from mapsqueeze.io import check_output_path, dropped_fields, format_name, read_point_cloud, write_points
 
 
@@ -16,13 +16,17 @@ def convert(
     out_format: str | None = typer.Option(None, "--out-format", help=f"format of OUT: {FORMAT_HELP}"),
 ) -> None:
     """Convert a point cloud between formats (KITTI .bin, nuScenes .pcd.bin, PLY, PCD, LAS/LAZ, .npy), keeping
-    every attribute and the LAS header's metadata the output format can hold."""
+    every attribute and the LAS header's metadata the output format can hold; a PCD's points with a NaN
+    coordinate ('no return') are left out, with a count."""
     format_name(output_path, out_format)  # a bad output fails before the input is read
     check_output_path(output_path, inputs=(input_path,))
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
     warn_dropped(cloud.attributes, output_path, out_format)
-    make_console().print(f"wrote {counted(len(cloud), 'point')} to {output_path}")
+    console = make_console()
+    if cloud.nan_points_dropped:
+        console.print(nan_points_line(cloud.nan_points_dropped))
+    console.print(f"wrote {counted(len(cloud), 'point')} to {output_path}")
 
 
 def warn_dropped(names, output_path: Path, out_format: str | None = None) -> None:

@@ -5,7 +5,8 @@ Format names (`format=` overrides the extension):
 - `pcd.bin`  nuScenes sweep, float32 N x 5 (x, y, z, intensity, ring), extension .pcd.bin
 - `ply`      PLY (binary little-endian when written; ascii or binary when read), extension .ply;
              `ply-ascii` writes ascii PLY (io.ply)
-- `pcd`      PCD with DATA binary when written (ascii or binary when read), extension .pcd; `pcd-ascii` writes ascii
+- `pcd`      PCD with DATA binary when written (ascii or binary when read), extension .pcd; `pcd-ascii` writes ascii;
+             points with a NaN coordinate (missing returns of organised clouds) are left out when read (io.pcd)
 - `las`, `laz` LAS 1.2-1.4 with every standard field, extra bytes and the header's CRS records (io.las)
 - `npy`      NumPy array N x 3, or N x (3 + k) with k attribute columns, extension .npy
 
@@ -155,23 +156,23 @@ def iter_points(path: str | os.PathLike, format: str | None = None,
         yield chunk.points
 
 
-def read_point_cloud(path: str | os.PathLike, format: str | None = None) -> PointCloud:
-    """Read points (N, 3) float64 metres, per-point attributes (dtypes kept) and file metadata; the format comes
-    from the extension unless `format` (one of SUPPORTED_FORMATS) is given."""
-    chunks = list(iter_point_clouds(path, format, chunk_points=1 << 62))
+def read_point_cloud(path: str | os.PathLike, format: str | None = None, attributes: bool = True) -> PointCloud:
+    """Read points (N, 3) float64 metres, per-point attributes (dtypes kept; none if not attributes) and file
+    metadata; the format comes from the extension unless `format` (one of SUPPORTED_FORMATS) is given. A PCD's
+    points with a NaN coordinate are left out and counted (`PointCloud.nan_points_dropped`)."""
+    chunks = list(iter_point_clouds(path, format, chunk_points=1 << 62, attributes=attributes))
     if len(chunks) == 1:
         return chunks[0]
     if not chunks:
         raise InvalidPointCloudError(f"{path}: the point cloud is empty")
     return PointCloud(np.concatenate([c.points for c in chunks]),
                       {name: np.concatenate([c.attributes[name] for c in chunks]) for name in chunks[0].attributes},
-                      chunks[0].metadata)
+                      chunks[0].metadata, sum(c.nan_points_dropped for c in chunks))
 
 
 def read_points(path: str | os.PathLike, format: str | None = None) -> np.ndarray:
     """Read only the points, (N, 3) float64 metres (see `read_point_cloud`)."""
-    chunks = list(iter_points(path, format, chunk_points=1 << 62))
-    return chunks[0] if len(chunks) == 1 else np.concatenate(chunks)
+    return read_point_cloud(path, format, attributes=False).points
 
 
 def _as_cloud(chunk) -> PointCloud:

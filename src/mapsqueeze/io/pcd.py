@@ -1,6 +1,8 @@
 """PCD files (Point Cloud Library, header v0.7) with DATA ascii or binary: a small reader and writer.
 
 Fields with COUNT k > 1 become attributes `name_0` .. `name_{k-1}`; padding fields named `_` are dropped.
+Points whose x, y or z is NaN, the "no return" marker of organised clouds written by PCL and ROS drivers, are left
+out with their attributes and counted (`PointCloud.nan_points_dropped`); infinite coordinates are refused.
 DATA binary_compressed (LZF) is refused with a PointCloudFormatError.
 """
 
@@ -10,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapsqueeze.errors import PointCloudFormatError
+from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
 from mapsqueeze.io.atomic import atomic_output
 from mapsqueeze.io.pointcloud import (
     FLOAT32_MAX_ERROR_M,
@@ -112,11 +114,29 @@ def _parse_ascii(body: bytes, dtype: np.dtype, num_points: int, path: Path) -> n
 def pcd_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
     """A PCD file is read whole: one chunk whatever chunk_points."""
     cloud = read_pcd(path)
-    yield cloud if attributes else PointCloud(cloud.points)
+    yield cloud if attributes else PointCloud(cloud.points, nan_points_dropped=cloud.nan_points_dropped)
+
+
+def _missing_returns(xyz: np.ndarray, path: Path) -> np.ndarray:
+    """(N,) bool: the points of (N, 3) float64 `xyz` with a NaN coordinate (missing returns). Raises
+    InvalidPointCloudError for an infinite coordinate (no missing-return marker) or when every point is missing."""
+    missing = np.isnan(xyz).any(axis=1)
+    infinite = np.flatnonzero(np.isinf(xyz).any(axis=1) & ~missing)
+    if len(infinite):
+        verb = "has" if len(infinite) == 1 else "have"
+        raise InvalidPointCloudError(
+            f"{path}: {len(infinite):,} of {len(xyz):,} points {verb} infinite coordinates (the first: point "
+            f"{int(infinite[0]):,}, counting from 0; NaN marks a missing return in PCD, infinity does not)"
+        )
+    if len(xyz) and missing.all():
+        raise InvalidPointCloudError(f"{path}: no points: all {len(xyz):,} points have NaN coordinates (PCD 'no "
+                                     "return' values)")
+    return missing
 
 
 def read_pcd(path: Path) -> PointCloud:
-    """Read a PCD file with DATA ascii or binary."""
+    """Read a PCD file with DATA ascii or binary, without the points whose x, y or z is NaN (counted in
+    `nan_points_dropped`)."""
     data = path.read_bytes()
     header, data_offset = _parse_header(data, path)
     dtype = _record_dtype(header, path)
@@ -144,12 +164,17 @@ def read_pcd(path: Path) -> PointCloud:
         )
     else:
         raise PointCloudFormatError(f"{path}: unknown PCD DATA encoding {encoding!r}")
-    points = validate_points(np.column_stack([records["x"], records["y"], records["z"]]), name=str(path))
+    xyz = np.column_stack([records["x"], records["y"], records["z"]]).astype(np.float64, copy=False)
+    missing = _missing_returns(xyz, path)
+    n_missing = int(np.count_nonzero(missing))
+    if n_missing:
+        xyz, records = xyz[~missing], records[~missing]
+    points = validate_points(xyz, name=str(path))
     attributes = {}
     for name in dtype.names:
         if name not in ("x", "y", "z") and not name.startswith(_PADDING_FIELD):
             attributes.update(split_columns(name, records[name].copy()))
-    return PointCloud(points, attributes)
+    return PointCloud(points, attributes, nan_points_dropped=n_missing)
 
 
 def _format_spec(dtype: np.dtype) -> tuple[str, str, str]:

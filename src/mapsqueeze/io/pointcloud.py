@@ -22,11 +22,14 @@ _ATTRIBUTE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
 @dataclass
 class PointCloud:
     """Points (N, 3) float64 in metres, per-point attributes (each a 1-D array of length N, its dtype kept) and
-    file metadata (JSON-serialisable; e.g. `las`: the LAS header's point format, scales, offsets, CRS records)."""
+    file metadata (JSON-serialisable; e.g. `las`: the LAS header's point format, scales, offsets, CRS records).
+    nan_points_dropped: the points of the file the reader left out because a coordinate is NaN (a PCD's "no
+    return" marker; `io.pcd`), not in `points`."""
 
     points: np.ndarray
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
+    nan_points_dropped: int = 0
 
     def __len__(self) -> int:
         return len(self.points)

@@ -33,16 +33,19 @@ INTENSITY_ATTRIBUTES = ("intensity", "reflectance")
 
 @dataclass
 class CloudInput:
-    """A point cloud to show: (N, 3) float64 world metres and, when it has them, (N,) intensities."""
+    """A point cloud to show: (N, 3) float64 world metres and, when it has them, (N,) intensities;
+    nan_points_dropped: the points of its file left out for a NaN coordinate (`PointCloud.nan_points_dropped`)."""
 
     points: np.ndarray
     intensity: np.ndarray | None = None
+    nan_points_dropped: int = 0
 
     @classmethod
     def from_point_cloud(cls, cloud: PointCloud) -> CloudInput:
         """A PointCloud's points and its first attribute named in INTENSITY_ATTRIBUTES (as float64), if any."""
         intensity = next((cloud.attributes[name] for name in INTENSITY_ATTRIBUTES if name in cloud.attributes), None)
-        return cls(cloud.points, None if intensity is None else np.asarray(intensity, dtype=np.float64))
+        return cls(cloud.points, None if intensity is None else np.asarray(intensity, dtype=np.float64),
+                   cloud.nan_points_dropped)
 
 
 @dataclass
