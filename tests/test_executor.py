@@ -1,7 +1,10 @@
 """Tile jobs in pool threads and on a Dask cluster give the bytes and points of the serial run."""
 
+import socket
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -337,3 +340,62 @@ def test_overlapping_thread_pools_keep_blas_at_one_thread_until_the_last_closes(
             thread.join(30)
         assert seen == [{1}] * 4
         assert numpy_blas_threads() == {2}
+
+
+def _closed_port() -> int:
+    """A local TCP port nothing listens on (bound, then released)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def _http_server() -> socket.socket:
+    """A listening socket answering every connection as an HTTP server answers a bad request (e.g. the Dask
+    dashboard's port given as the scheduler's)."""
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def serve():
+        while True:
+            try:
+                connection, _ = server.accept()
+            except OSError:  # closed
+                return
+            with connection:
+                connection.recv(65536)
+                connection.sendall(b"HTTP/1.1 400 Bad Request\r\nconnection: close\r\ncontent-length: 0\r\n\r\n")
+
+    threading.Thread(target=serve, daemon=True).start()
+    return server
+
+
+@pytest.mark.parametrize("case", ["refused", "http server"])
+def test_an_unreachable_dask_scheduler_is_one_error_line_within_seconds(run_cli, map_points, model_dir, tmp_path,
+                                                                         case):
+    """A refused connection fails in a round trip (the Dask client alone retries it for its 30 s timeout); a
+    server that answers but not as a scheduler is one line too, not a traceback."""
+    pytest.importorskip("distributed")
+    write_points(tmp_path / "map.ply", map_points)
+    server = _http_server() if case == "http server" else None
+    address = f"tcp://127.0.0.1:{server.getsockname()[1] if server else _closed_port()}"
+    started = time.monotonic()
+    try:
+        code, out, err = run_cli("compress", str(tmp_path / "map.ply"), "-o", str(tmp_path / "map.msq"), "--model",
+                                 str(model_dir), "--dask-scheduler", address)
+    finally:
+        if server:
+            server.close()
+    elapsed = time.monotonic() - started
+    reason = "Connection refused" if case == "refused" else "the server there does not answer as a Dask scheduler"
+    assert (code, out) == (2, "") and err.startswith(f"error: cannot reach the Dask scheduler at {address!r}: {reason}")
+    assert err.count("\n") == 1 and elapsed < 15.0 and not (tmp_path / "map.msq").exists()
+
+
+def test_the_scheduler_probe_passes_a_listening_port_and_leaves_other_schemes_to_dask():
+    pytest.importorskip("distributed")
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        for address in (f"tcp://127.0.0.1:{port}", f"127.0.0.1:{port}", f"tls://127.0.0.1:{port}"):
+            executor_module._probe_scheduler(address)
+    executor_module._probe_scheduler("inproc://192.168.1.1/1234/1")
+    with pytest.raises(ValueError, match="port"):
+        executor_module._probe_scheduler("tcp://127.0.0.1")

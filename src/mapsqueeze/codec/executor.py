@@ -10,6 +10,7 @@ so every executor gives the same bytes.
 from __future__ import annotations
 
 import os
+import socket
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -36,6 +37,17 @@ arrays)."""
 
 DASK_RETRIES = 3
 """A Dask job whose worker dies is run again on another worker this many times before the whole run fails."""
+
+SCHEDULER_PROBE_S = 5.0
+"""Seconds a TCP connection to a Dask scheduler's host and port may take to open (`_probe_scheduler`): a refused
+connection or an unknown host fails at once, a host that does not answer after this; the kernel of a reachable
+scheduler accepts within a round trip (and two lost SYNs, resent after 1 and 3 s), however busy the scheduler."""
+
+SCHEDULER_TIMEOUT_S = 30
+"""Seconds the Dask client then has for its handshake with the scheduler, which a busy scheduler may answer late."""
+
+_PROBED_SCHEMES = ("tcp", "tls", "ws", "wss")
+"""Address schemes over TCP (host:port) that `_probe_scheduler` checks; others (e.g. inproc, ucx) go to the client."""
 
 
 def default_workers() -> int:
@@ -145,9 +157,13 @@ class DaskExecutor:
             self._client = Client(self._cluster)
         else:
             try:
-                self._client = Client(address, timeout="30s")
+                _probe_scheduler(address)
+                self._client = Client(address, timeout=f"{SCHEDULER_TIMEOUT_S}s")
             except (OSError, ValueError) as exc:
                 raise MapsqueezeError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
+            except Exception as exc:  # another server, e.g. the dashboard's HTTP port: its reply read as a frame
+                raise MapsqueezeError(f"cannot reach the Dask scheduler at {address!r}: the server there does not "
+                                      f"answer as a Dask scheduler ({type(exc).__name__})") from None
         self.workers = max(1, len(self._client.scheduler_info().get("workers", {})) or workers)
 
     def map(self, function: TileFunction, context: Any, items: Iterable) -> Iterator:
@@ -164,6 +180,25 @@ class DaskExecutor:
 
 
 Executor = SerialExecutor | ThreadExecutor | DaskExecutor
+
+
+def _probe_scheduler(address: str) -> None:
+    """Open and close a TCP connection to the host and port of a Dask scheduler address (tcp://, tls://, ws://,
+    wss:// or host:port), or raise OSError (refused, unknown host, no answer within SCHEDULER_PROBE_S) or ValueError
+    (no port). The Dask client retries a refused connection until its timeout (30 s); this fails in a round trip.
+    The scheduler logs the connection as closed before its handshake."""
+    from distributed.comm.addressing import parse_address, parse_host_port, unparse_host_port
+
+    scheme, location = parse_address(address)
+    if scheme not in _PROBED_SCHEMES:
+        return
+    host, port = parse_host_port(location)
+    try:
+        socket.create_connection((host, port), timeout=SCHEDULER_PROBE_S).close()
+    except TimeoutError:
+        raise OSError(f"no answer from {unparse_host_port(host, port)} within {SCHEDULER_PROBE_S:g} s") from None
+    except OSError as exc:
+        raise OSError(f"{exc.strerror or exc} ({unparse_host_port(host, port)})") from None
 
 
 def open_executor(workers: int | None, dask_scheduler: str | None, n_jobs: int) -> Executor:
