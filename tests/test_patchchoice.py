@@ -8,6 +8,8 @@ import mapsqueeze
 from mapsqueeze.codec.entropy import ByteReader
 from mapsqueeze.codec.container import TileRecord, open_container, serialise_container
 from mapsqueeze.codec.postfilter import (
+    CHOICE_SEARCH_START,
+    CLEAR_PAY_FRACTION,
     IOU_PER_LOG_RATE,
     OFF,
     PATCH_CHOICE_RATE_SWEEPS,
@@ -15,10 +17,13 @@ from mapsqueeze.codec.postfilter import (
     PATCH_CANDIDATES,
     PATCH_CHOICES,
     PATCH_OPTIONS,
+    PatchChoiceSearch,
     PostFilter,
     apply_patch_choices,
     apply_patch_filter,
     check_setting,
+    choices_pay_clearly,
+    choose_patch_filter,
     decode_patch_choices,
     encode_patch_choices,
     patch_choice_prefix,
@@ -342,3 +347,39 @@ def test_a_copy_of_e3_under_another_name_searches_with_e3s_copy_weight(cluttered
     assert PATCH_CHOICES in {setting for setting, _ in shipped}
     assert tiles(str(copies["my-e3"])) == shipped
     assert tiles(str(copies["e3-unweighted"])) != shipped
+
+
+def test_choices_pay_clearly_only_where_they_would_pay_for_a_fraction_of_the_payload():
+    choices = np.zeros(100, dtype=np.int64)
+    growth = len(encode_patch_choices(choices))
+    at_full = IOU_PER_LOG_RATE * np.log((2000 + growth) / 2000)
+    at_fraction = IOU_PER_LOG_RATE * np.log((2000 * CLEAR_PAY_FRACTION + growth) / (2000 * CLEAR_PAY_FRACTION))
+    between = PatchChoiceSearch(choices, 0.3, 0.3 + (at_full + at_fraction) / 2)
+    assert patch_choice_prefix(between, 2000) is not None and not choices_pay_clearly(between, 2000)
+    assert choices_pay_clearly(PatchChoiceSearch(choices, 0.3, 0.3 + 1.01 * at_fraction), 2000)
+    assert not choices_pay_clearly(None, 2000)
+
+
+def test_the_encoder_chooses_the_tile_setting_only_where_the_choices_do_not_pay_clearly(monkeypatch):
+    """`tilejobs._patch_choices`: choices searched from CHOICE_SEARCH_START's option; where they pay clearly the
+    tile's own setting is never chosen; where they do not (a decode equal to the original, a one-byte payload), it
+    is, and the search runs again from its option, as a search from that setting gives."""
+    from types import SimpleNamespace
+
+    from mapsqueeze.codec import tilejobs
+
+    chosen = []
+    monkeypatch.setattr(tilejobs, "choose_patch_filter", lambda *args: chosen.append(choose_patch_filter(*args))
+                        or chosen[-1])
+    model = SimpleNamespace(config=SimpleNamespace(upsampling_factors=FACTORS, patch_choice_copy_weight=0.0))
+    original, decoded = mixed_patches()
+    local = (original - FRAME).astype(np.float32)
+    setting, search = tilejobs._patch_choices(original, local, FRAME, EXTENT, decoded, model, 10_000, True)
+    assert setting == CHOICE_SEARCH_START and not chosen
+    start = search_patch_choices(original, decoded, FACTORS, FRAME, EXTENT, CHOICE_SEARCH_START, 0.0, 10_000)
+    assert np.array_equal(search.choices, start.choices) and choices_pay_clearly(search, 10_000)
+    setting, search = tilejobs._patch_choices(original, local, FRAME, EXTENT, local, model, 1, True)  # 1 byte
+    assert chosen == [setting] == [OFF]  # the exact decode's setting
+    again = search_patch_choices(original, local, FACTORS, FRAME, EXTENT, OFF, 0.0, 1)
+    assert np.array_equal(search.choices, again.choices) and search.before == again.before
+    assert patch_choice_prefix(search, 1) is None

@@ -109,6 +109,14 @@ def patch_planes_byte(copies: int) -> int:
 PATCH_CANDIDATES = tuple(patch_planes_byte(copies) for copies in PATCH_COPIES)
 """The patch-plane settings the encoder tries, in order of decoded points (the second extra point per point decodes
 3 instead of 2 times the native count)."""
+CHOICE_SEARCH_START = PATCH_CANDIDATES[0]
+"""The patch-plane setting from whose option the encoder searches a tile's patch choices before it knows the tile's
+own setting (`codec.tilejobs`): one extra point per point, the setting that every tile of the real submaps and of
+the benchmarks' 25-tile map takes with each shipped model."""
+CLEAR_PAY_FRACTION = 0.5
+"""Patch choices pay clearly when they would pay for a network payload of this fraction of its bytes
+(`choices_pay_clearly`): the file's final coding of the payload moves its size by a few percent at most, so such
+choices are kept (`patch_choice_prefix`) and the tile's own patch-plane setting, their fallback, is not needed."""
 PATCH_EXTRA_COPY_MIN_IOU_GAIN = 0.01
 """IoU two extra points per point must gain over one to be chosen: the second copy adds the native count again to
 the decoded cloud, its file and the decoding time (+50 % points), and on the real KITTI and Ouster submaps it
@@ -372,6 +380,14 @@ def patch_choice_prefix(search: PatchChoiceSearch, payload_bytes: int) -> bytes 
     if search.after - search.before <= IOU_PER_LOG_RATE * np.log((payload_bytes + len(prefix)) / payload_bytes):
         return None
     return prefix
+
+
+def choices_pay_clearly(search: PatchChoiceSearch | None, payload_bytes: int) -> bool:
+    """Whether a tile's searched patch choices would pay (`patch_choice_prefix`) even for a network payload of
+    CLEAR_PAY_FRACTION of its `payload_bytes`; False without a search."""
+    if search is None:
+        return False
+    return patch_choice_prefix(search, max(1, int(payload_bytes * CLEAR_PAY_FRACTION))) is not None
 
 
 def apply_post_filter(cloud: np.ndarray, byte: int, planes: tuple[np.ndarray, np.ndarray] | None = None

@@ -16,9 +16,11 @@ from mapsqueeze.codec.latent import LATENT_CODECS
 from mapsqueeze.codec.modes import Candidate, RateTarget
 from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, own_leaf_distances
 from mapsqueeze.codec.postfilter import (
+    CHOICE_SEARCH_START,
     OFF,
     PatchChoiceSearch,
     apply_patch_filter,
+    choices_pay_clearly,
     choose_patch_filter,
     choose_post_filter,
     search_patch_choices,
@@ -125,7 +127,7 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
     under the default patch planes without a rate target, where it is the unfiltered decode's (the filter moves D_e
     by -2 to +5 % on the real submaps; this spares a nearest-neighbour search over 2-3 times the points, and the
     tiles' codings are those of post-filter "off"), where the patch choices are also searched on the decode
-    (`postfilter.search_patch_choices`, kept by `_assemble` where they pay). D_e values are `codec.distortion`'s:
+    (`_patch_choices`, kept by `_assemble` where they pay). D_e values are `codec.distortion`'s:
     without a target, NaN for the classical candidates the mode decision cannot pick (larger than the network's
     payload of `network_bytes`, `modes.choose`: neither decoded nor searched); estimated on samples, exact where
     two it may pick are close; exact throughout under a rate target or with the neighbour-plane post-filter
@@ -159,21 +161,44 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
         if target.post_filter == "patch":
             uncropped = model.decode(*embedding)
             decoded = keep_inside(uncropped, extent)
-            post_filter = choose_patch_filter(local + frame, uncropped, decoded, model.config.upsampling_factors,
-                                              frame, extent, job.compiled)
-            if target.given and post_filter != OFF:
-                decoded = apply_patch_filter(uncropped, post_filter, model.config.upsampling_factors, extent,
-                                             compiled=job.compiled)
+            if target.given:
+                post_filter = choose_patch_filter(local + frame, uncropped, decoded, model.config.upsampling_factors,
+                                                  frame, extent, job.compiled)
+                if post_filter != OFF:
+                    decoded = apply_patch_filter(uncropped, post_filter, model.config.upsampling_factors, extent,
+                                                 compiled=job.compiled)
         else:
             decoded = network_points(model, *embedding, extent, None)
         distortion.add(decoded)
         *d_e, network_d_e = distortion.settle()
         if target.post_filter == "patch" and not target.given:
             del distortion, decoded  # the candidates' decodes and trees: the search's arrays take their memory
-            search = search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped,
-                                          model.config.upsampling_factors, frame, extent, post_filter,
-                                          model.config.patch_choice_copy_weight, network_bytes, job.compiled)
+            post_filter, search = _patch_choices(tile_points, local, frame, extent, uncropped, model, network_bytes,
+                                                 job.compiled)
     return _candidates(classical, d_e), network_d_e, post_filter, search
+
+
+def _patch_choices(tile_points: np.ndarray, local: np.ndarray, frame: np.ndarray, extent: np.ndarray,
+                   uncropped: np.ndarray, model, network_bytes: int, compiled: bool
+                   ) -> tuple[int, PatchChoiceSearch | None]:
+    """(patch-plane setting, patch-choice search or None) of a network tile under the default post-filter without a
+    rate target: the choices searched from the option of CHOICE_SEARCH_START; only where they do not pay clearly
+    (`postfilter.choices_pay_clearly`) the tile's own setting (`choose_patch_filter`, what `_assemble` stores where
+    the choices do not pay) and, where it differs, the search again from its option. tile_points: the tile's
+    float64 world points; local: their tile-local float32 metres relative to the world point `frame`; uncropped:
+    the network's whole decode of the embedding the file holds."""
+    factors = model.config.upsampling_factors
+
+    def search_from(setting: int):
+        return search_patch_choices(np.asarray(tile_points, dtype=np.float64), uncropped, factors, frame, extent,
+                                    setting, model.config.patch_choice_copy_weight, network_bytes, compiled)
+
+    search = search_from(CHOICE_SEARCH_START)
+    if choices_pay_clearly(search, network_bytes):
+        return CHOICE_SEARCH_START, search
+    setting = choose_patch_filter(local + frame, uncropped, keep_inside(uncropped, extent), factors, frame, extent,
+                                  compiled)
+    return setting, (search if setting == CHOICE_SEARCH_START or search is None else search_from(setting))
 
 
 def _candidates(classical: list[tuple[TileCoding, bytes, str]], d_e: list[float]) -> list[Candidate]:
