@@ -243,11 +243,17 @@ def test_points_at_the_origin_are_dropped_by_default(run_cli, tiny_model_dir, tm
     assert code == 2 and "all 5 points lie at (0, 0, 0)" in err and "--keep-zero-points" in err
 
 
-def organised_pcd(path: Path, points: np.ndarray, intensity: np.ndarray) -> Path:
-    """x, y, z and intensity as a binary PCD of 2 rows (an organised cloud), NaN rows as they are."""
+def organised_records(points: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """x, y, z and intensity as float32 PCD point records."""
     records = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
     records["x"], records["y"], records["z"] = points.T
     records["intensity"] = intensity
+    return records
+
+
+def organised_pcd(path: Path, points: np.ndarray, intensity: np.ndarray) -> Path:
+    """x, y, z and intensity as a binary PCD of 2 rows (an organised cloud), NaN rows as they are."""
+    records = organised_records(points, intensity)
     header = ("VERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
               f"WIDTH {len(points) // 2}\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA binary\n")
     path.write_bytes(header.encode() + records.tobytes())
@@ -289,6 +295,28 @@ def test_pcd_points_with_nan_coordinates_are_left_out_by_every_command(run_cli, 
                            str(tmp_path / "one.msq"), "--model", str(tiny_model_dir))
     assert code == 0 and out.startswith("left out 1 point with NaN coordinates (PCD 'no return' values)\n"
                                         "left out 1 point at exactly (0, 0, 0) (sensor 'no return' values; ")
+
+
+def test_binary_compressed_pcd_compresses_to_the_bytes_of_the_same_binary_pcd(run_cli, tiny_model_dir, tmp_path,
+                                                                              binary_compressed_pcd):
+    """PCL's DATA binary_compressed (LZF, each field for every point in turn) holds the cloud DATA binary holds:
+    the same NaN points left out and said, the same .msq bytes."""
+    points = ground().astype(np.float32)
+    intensity = np.random.default_rng(4).uniform(0, 100, 3000).astype(np.float32)
+    points[::9] = np.nan
+    organised_pcd(tmp_path / "binary.pcd", points, intensity)
+    binary_compressed_pcd(tmp_path / "lzf.pcd", organised_records(points, intensity), height=2)
+    assert b"DATA binary_compressed\n" in (tmp_path / "lzf.pcd").read_bytes()
+    outputs = {}
+    for name in ("binary", "lzf"):
+        code, out, err = run_cli("compress", str(tmp_path / f"{name}.pcd"), "-o", str(tmp_path / f"{name}.msq"),
+                                 "--model", str(tiny_model_dir))
+        assert code == 0 and err == "" and out.startswith("left out 334 points with NaN coordinates (PCD 'no return' "
+                                                          "values)\nwrote ")
+        outputs[name] = (tmp_path / f"{name}.msq").read_bytes()
+    assert outputs["lzf"] == outputs["binary"]
+    summary = mapsqueeze.info(outputs["lzf"])
+    assert summary.n_points == 2666 and "intensity" in summary.attributes
 
 
 @pytest.mark.parametrize("case", ["all NaN", "infinite"])
@@ -430,8 +458,10 @@ def truncated(path: Path, fraction: float) -> Path:
 
 @pytest.mark.parametrize("case", ["directory as input", "directory as decompress output", "directory as convert output",
                                   "convert into a missing folder", "truncated LAS", "truncated LAZ",
-                                  "truncated ascii PCD"])
-def test_bad_paths_and_truncated_files_name_the_problem(run_cli, tiny_model_dir, map_file, tmp_path, case):
+                                  "truncated ascii PCD", "truncated binary_compressed PCD",
+                                  "corrupt binary_compressed PCD"])
+def test_bad_paths_and_truncated_files_name_the_problem(run_cli, tiny_model_dir, map_file, tmp_path, case,
+                                                        binary_compressed_pcd):
     folder = tmp_path / "folder"
     folder.mkdir()
     points = ground(2000) + UTM
@@ -453,10 +483,21 @@ def test_bad_paths_and_truncated_files_name_the_problem(run_cli, tiny_model_dir,
         write_points(tmp_path / "in.laz", points)
         args = ["convert", truncated(tmp_path / "in.laz", 0.5), tmp_path / "out.ply"]
         expected = "corrupt or truncated LAZ point data"
-    else:
+    elif case == "truncated ascii PCD":
         write_points(tmp_path / "in.pcd", points, format="pcd-ascii")
         args = ["convert", truncated(tmp_path / "in.pcd", 0.5), tmp_path / "out.ply"]
         expected = "corrupt PCD ascii data (the number of columns changed"
+    else:
+        records = np.empty(len(points), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+        records["x"], records["y"], records["z"] = points.T
+        source = binary_compressed_pcd(tmp_path / "in.pcd", records)
+        if case == "truncated binary_compressed PCD":
+            args, expected = ["compress", truncated(source, 0.5), "-o", tmp_path / "out.msq"], "(truncated?)"
+        else:  # the LZF stream's first token made a back-reference (LZF has no checksum: a flipped literal passes)
+            data = bytearray(source.read_bytes())
+            data[data.index(b"DATA binary_compressed\n") + 23 + 8] = 0x20
+            source.write_bytes(bytes(data))
+            args, expected = ["convert", source, tmp_path / "out.ply"], "corrupt PCD binary_compressed data (LZF: "
     before = sorted(tmp_path.rglob("*"))
     code, out, err = run_cli(*map(str, args))
     assert (code, out) == (2, "") and err.startswith("error: ") and err.count("\n") == 1, err

@@ -18,6 +18,8 @@ from mapsqueeze.io import (
     PointCloud,
     atomic_output,
     atomic_write_bytes,
+    iter_point_clouds,
+    lzf,
     read_point_cloud,
     read_points,
     validate_points,
@@ -163,12 +165,40 @@ def test_pcd_reads_multi_count_and_padding_fields(tmp_path):
     np.testing.assert_allclose(cloud.attributes["normal_2"], [0.3, 0.6], rtol=1e-6)
 
 
-def organised_pcd(path: Path, points: np.ndarray, intensity: np.ndarray, data: str, height: int = 4) -> None:
+def test_pcd_binary_compressed_reads_multi_count_padding_and_every_type(tmp_path, binary_compressed_pcd):
+    """Each field for every point in turn, COUNT > 1 fields and padding included: the same cloud as DATA binary."""
+    rng = np.random.default_rng(4)
+    records = np.zeros(300, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("_", "u1", (2,)),
+                                   ("normal", "<f4", (3,)), ("ring", "u1"), ("t", "<i8"), ("label", "<u4")])
+    for axis in ("x", "y", "z"):
+        records[axis] = rng.uniform(-50, 50, 300)
+    records["_"], records["normal"] = 255, rng.normal(size=(300, 3))
+    records["ring"], records["t"], records["label"] = np.arange(300) % 64, -np.arange(300) * 10**12, 7
+    compressed = read_point_cloud(binary_compressed_pcd(tmp_path / "multi.pcd", records))
+    header = (tmp_path / "multi.pcd").read_bytes().split(b"DATA")[0] + b"DATA binary\n"
+    (tmp_path / "binary.pcd").write_bytes(header + records.tobytes())
+    binary = read_point_cloud(tmp_path / "binary.pcd")
+    assert list(compressed.attributes) == list(binary.attributes) == ["normal_0", "normal_1", "normal_2", "ring",
+                                                                      "t", "label"]
+    np.testing.assert_array_equal(compressed.points, binary.points)
+    np.testing.assert_array_equal(compressed.points[:, 2], records["z"])
+    for name, values in binary.attributes.items():
+        assert compressed.attributes[name].dtype == values.dtype
+        np.testing.assert_array_equal(compressed.attributes[name], values)
+    np.testing.assert_array_equal(compressed.attributes["normal_1"], records["normal"][:, 1])
+    np.testing.assert_array_equal(compressed.attributes["t"], records["t"])
+
+
+def organised_pcd(path: Path, points: np.ndarray, intensity: np.ndarray, data: str, height: int = 4,
+                  compressed_writer=None) -> None:
     """Write x, y, z (float32) and intensity (uint16) as an organised PCD (`height` rows) with DATA `data`, NaN rows
-    as they are (write_points refuses them)."""
+    as they are (write_points refuses them); binary_compressed through `compressed_writer` (the fixture)."""
     records = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<u2")])
     records["x"], records["y"], records["z"] = points.T
     records["intensity"] = intensity
+    if data == "binary_compressed":
+        compressed_writer(path, records, height)
+        return
     if data == "binary":
         body = records.tobytes()
     else:
@@ -179,8 +209,11 @@ def organised_pcd(path: Path, points: np.ndarray, intensity: np.ndarray, data: s
     path.write_bytes(header.encode() + body)
 
 
-@pytest.mark.parametrize("data", ["binary", "ascii"])
-def test_pcd_points_with_nan_coordinates_are_left_out_with_their_attributes(tmp_path, data):
+PCD_DATA = ["binary", "ascii", "binary_compressed"]
+
+
+@pytest.mark.parametrize("data", PCD_DATA)
+def test_pcd_points_with_nan_coordinates_are_left_out_with_their_attributes(tmp_path, data, binary_compressed_pcd):
     """Organised PCDs (PCL, ROS drivers) mark a missing return by NaN x, y, z; a NaN in one coordinate counts too."""
     points = local_cloud(400).astype(np.float32)
     intensity = np.arange(400, dtype=np.uint16)
@@ -189,28 +222,36 @@ def test_pcd_points_with_nan_coordinates_are_left_out_with_their_attributes(tmp_
     points[missing] = np.nan
     points[[5, 90], [1, 2]] = np.nan  # one NaN coordinate is enough
     missing[[5, 90]] = True
-    organised_pcd(tmp_path / "scan.pcd", points, intensity, data)
+    organised_pcd(tmp_path / "scan.pcd", points, intensity, data, compressed_writer=binary_compressed_pcd)
     cloud = read_point_cloud(tmp_path / "scan.pcd")
     assert cloud.nan_points_dropped == missing.sum() == 60
     np.testing.assert_array_equal(cloud.points, points[~missing].astype(np.float64))
     np.testing.assert_array_equal(cloud.attributes["intensity"], intensity[~missing])
     np.testing.assert_array_equal(read_points(tmp_path / "scan.pcd"), cloud.points)
     assert read_point_cloud(tmp_path / "scan.pcd", attributes=False).nan_points_dropped == 60
-    organised_pcd(tmp_path / "dense.pcd", points[~missing], intensity[~missing], data, height=1)
+    organised_pcd(tmp_path / "dense.pcd", points[~missing], intensity[~missing], data, height=1,
+                  compressed_writer=binary_compressed_pcd)
     assert read_point_cloud(tmp_path / "dense.pcd").nan_points_dropped == 0
+    chunks = list(iter_point_clouds(tmp_path / "scan.pcd", chunk_points=64))  # 340 points kept: 64 x 5 + 20
+    assert [len(chunk) for chunk in chunks] == [64] * 5 + [20]
+    assert [chunk.nan_points_dropped for chunk in chunks] == [60] + [0] * 5
+    np.testing.assert_array_equal(np.concatenate([chunk.points for chunk in chunks]), cloud.points)
+    np.testing.assert_array_equal(np.concatenate([chunk.attributes["intensity"] for chunk in chunks]),
+                                  cloud.attributes["intensity"])
 
 
-@pytest.mark.parametrize("data", ["binary", "ascii"])
-def test_pcd_infinite_or_only_nan_coordinates_are_refused(tmp_path, data):
+@pytest.mark.parametrize("data", PCD_DATA)
+def test_pcd_infinite_or_only_nan_coordinates_are_refused(tmp_path, data, binary_compressed_pcd):
     points = local_cloud(400).astype(np.float32)
     points[::7] = np.nan
     points[[12, 30], [0, 2]] = [np.inf, -np.inf]
-    organised_pcd(tmp_path / "inf.pcd", points, np.zeros(400), data)
+    organised_pcd(tmp_path / "inf.pcd", points, np.zeros(400), data, compressed_writer=binary_compressed_pcd)
     with pytest.raises(InvalidPointCloudError) as infinite:
         read_point_cloud(tmp_path / "inf.pcd")
     assert str(infinite.value) == (f"{tmp_path / 'inf.pcd'}: 2 of 400 points have infinite coordinates (the first: "
                                    "point 12, counting from 0; NaN marks a missing return in PCD, infinity does not)")
-    organised_pcd(tmp_path / "nan.pcd", np.full((8, 3), np.nan, np.float32), np.zeros(8), data)
+    organised_pcd(tmp_path / "nan.pcd", np.full((8, 3), np.nan, np.float32), np.zeros(8), data,
+                  compressed_writer=binary_compressed_pcd)
     with pytest.raises(InvalidPointCloudError, match=r"nan.pcd: no points: all 8 points have NaN coordinates"):
         read_point_cloud(tmp_path / "nan.pcd")
 
@@ -275,6 +316,12 @@ def pcd_text(points: int, width: int, data: str, body: bytes) -> bytes:
     return header.encode() + body
 
 
+def lzf_body(stream: bytes, uncompressed: int, compressed: int | None = None) -> bytes:
+    """A binary_compressed body: the sizes (compressed: len(stream) unless given), then the LZF stream."""
+    compressed = len(stream) if compressed is None else compressed
+    return compressed.to_bytes(4, "little") + uncompressed.to_bytes(4, "little") + stream
+
+
 def make_bad_file(tmp_path: Path, case: str) -> Path:
     """Create the bad input `case`; returns its path."""
     xyz = local_cloud(10).astype(np.float32)
@@ -300,7 +347,17 @@ def make_bad_file(tmp_path: Path, case: str) -> Path:
         "pcd width disagrees with points": ("wh.pcd", pcd_text(10, 9, "binary", xyz.tobytes())),
         "pcd ascii more points than rows": ("rows.pcd", pcd_text(11, 11, "ascii", b"1 2 3\n" * 10)),
         "pcd ascii wrong column count": ("cols.pcd", pcd_text(2, 2, "ascii", b"1 2 3 4\n5 6 7 8\n")),
-        "pcd binary_compressed": ("lzf.pcd", pcd_text(10, 10, "binary_compressed", b"\0" * 64)),
+        "pcd binary_compressed without its sizes": ("lzf.pcd", pcd_text(10, 10, "binary_compressed", b"\0" * 7)),
+        "pcd binary_compressed uncompressed size not points x point size":
+            ("lzf.pcd", pcd_text(10, 10, "binary_compressed", lzf_body(b"\x1f" + bytes(32), 32))),
+        "pcd binary_compressed compressed size beyond the file":
+            ("lzf.pcd", pcd_text(10, 10, "binary_compressed", lzf_body(b"\x1f" + bytes(32), 120, 34))),
+        "pcd binary_compressed block beyond LZF's expansion":
+            ("lzf.pcd", pcd_text(300_000_000, 300_000_000, "binary_compressed", lzf_body(b"\0\0", 3_600_000_000))),
+        "pcd binary_compressed back-reference before the start":
+            ("lzf.pcd", pcd_text(10, 10, "binary_compressed", lzf_body(b"\x20\x00", 120))),
+        "pcd binary_compressed stream shorter than its size":
+            ("lzf.pcd", pcd_text(10, 10, "binary_compressed", lzf_body(b"\x1f" + bytes(32), 120))),
         "pcd without z": ("noz.pcd", b"FIELDS x y\nSIZE 4 4\nTYPE F F\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2\n"),
         "las garbage": ("garbage.las", b"LASF" + bytes(100)),
     }
@@ -338,7 +395,12 @@ BAD_INPUTS = {
     "pcd width disagrees with points": PointCloudFormatError,
     "pcd ascii more points than rows": PointCloudFormatError,
     "pcd ascii wrong column count": PointCloudFormatError,
-    "pcd binary_compressed": PointCloudFormatError,
+    "pcd binary_compressed without its sizes": PointCloudFormatError,
+    "pcd binary_compressed uncompressed size not points x point size": PointCloudFormatError,
+    "pcd binary_compressed compressed size beyond the file": PointCloudFormatError,
+    "pcd binary_compressed block beyond LZF's expansion": PointCloudFormatError,
+    "pcd binary_compressed back-reference before the start": PointCloudFormatError,
+    "pcd binary_compressed stream shorter than its size": PointCloudFormatError,
     "pcd without z": PointCloudFormatError,
     "las garbage": PointCloudFormatError,
 }
@@ -350,6 +412,67 @@ def test_bad_input_raises_typed_error_naming_the_file(tmp_path, case, error):
     with pytest.raises(error) as excinfo:
         read_points(path)
     assert_single_line_naming(excinfo, path)
+
+
+def test_pcd_binary_compressed_errors_say_what_is_wrong(tmp_path):
+    expected = {
+        "pcd binary_compressed without its sizes": "PCD binary_compressed data ends before its sizes (truncated?)",
+        "pcd binary_compressed uncompressed size not points x point size":
+            "PCD header declares 10 points of 12 bytes (120 bytes), the binary_compressed data says 32 bytes "
+            "uncompressed",
+        "pcd binary_compressed compressed size beyond the file":
+            "PCD binary_compressed data declares 34 compressed bytes, the file holds 33 after the header (truncated?)",
+        "pcd binary_compressed block beyond LZF's expansion":
+            "PCD binary_compressed data declares 3,600,000,000 bytes uncompressed from 2 compressed, more than LZF "
+            "can expand to (88x)",
+        "pcd binary_compressed back-reference before the start":
+            "corrupt PCD binary_compressed data (LZF: a back-reference at byte 0 points 1 bytes back from output "
+            "byte 0, before the start)",
+        "pcd binary_compressed stream shorter than its size":
+            "corrupt PCD binary_compressed data (LZF: the stream decompresses to 32 bytes, 120 expected)",
+    }
+    for case, message in expected.items():
+        path = make_bad_file(tmp_path, case)
+        with pytest.raises(PointCloudFormatError) as excinfo:
+            read_points(path)
+        assert str(excinfo.value) == f"{path}: {message}"
+
+
+def test_lzf_decompress_literals_references_and_overlapping_copies(lzf_compress):
+    cases = [
+        (b"\x02abc\x20\x02", b"abcabc"),  # a 3-byte reference 3 back
+        (b"\x01ab\x60\x01", b"ab" + b"ababa"),  # 5 bytes from 2 back: overlapping, the pattern repeated
+        (b"\x00a\xe0\x01\x00", b"a" * 11),  # length field 7 + extra byte 1 + 2 = 10, 1 back
+        (b"\x00z\xe0\xff\x00", b"z" * 265),  # the longest reference, 264 bytes
+        (b"\x1f" + bytes(range(32)) + b"\x20\x1f", bytes(range(32)) + bytes(range(3))),  # 32 back
+        (b"", b""),
+    ]
+    for stream, expected in cases:
+        assert bytes(lzf.decompress(stream, len(expected))) == expected
+    far = bytes(range(256)) * 32  # 8,192 bytes, then 3 of them again from the farthest offset
+    assert bytes(lzf.decompress(b"".join(b"\x1f" + far[i : i + 32] for i in range(0, 8192, 32)) + b"\x3f\xff",
+                                8195)) == far + far[:3]
+    rng = np.random.default_rng(5)
+    for data in (bytes(1000), rng.integers(0, 4, 5000, dtype=np.uint8).tobytes(),
+                 rng.normal(size=3000).astype("<f4").tobytes(), b"abc" * 700 + bytes(range(256))):
+        assert bytes(lzf.decompress(lzf_compress(data), len(data))) == data
+    assert len(lzf_compress(bytes(1000))) == 14  # 1 literal, 3 references of 264 + 1 of 207: references are made
+
+
+@pytest.mark.parametrize(("stream", "size", "message"), [
+    (b"\x20\x00", 3, "a back-reference at byte 0 points 1 bytes back from output byte 0, before the start"),
+    (b"\x00a\x40\x01", 5, "a back-reference at byte 2 points 2 bytes back from output byte 1, before the start"),
+    (b"\x05ab", 6, "a literal run of 6 bytes at byte 0 runs past the end of the 3-byte stream"),
+    (b"\x00a\x20", 4, "a back-reference at byte 2 runs past the end of the 3-byte stream"),
+    (b"\x00a\xe0\x01", 11, "a back-reference at byte 2 runs past the end of the 4-byte stream"),
+    (b"\x02abc", 2, "the stream decompresses to more than the 2 bytes expected"),
+    (b"\x00a\xe0\x01\x00", 10, "the stream decompresses to more than the 10 bytes expected"),
+    (b"\x02abc", 4, "the stream decompresses to 3 bytes, 4 expected"),
+])
+def test_lzf_decompress_refuses_corrupt_streams_without_overrunning(stream, size, message):
+    with pytest.raises(lzf.LZFError) as excinfo:
+        lzf.decompress(stream, size)
+    assert str(excinfo.value) == message
 
 
 def test_ply_without_xyz_or_vertex_element(tmp_path):

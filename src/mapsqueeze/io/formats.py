@@ -5,8 +5,9 @@ Format names (`format=` overrides the extension):
 - `pcd.bin`  nuScenes sweep, float32 N x 5 (x, y, z, intensity, ring), extension .pcd.bin
 - `ply`      PLY (binary little-endian when written; ascii or binary when read), extension .ply;
              `ply-ascii` writes ascii PLY (io.ply)
-- `pcd`      PCD with DATA binary when written (ascii or binary when read), extension .pcd; `pcd-ascii` writes ascii;
-             points with a NaN coordinate (missing returns of organised clouds) are left out when read (io.pcd)
+- `pcd`      PCD with DATA binary when written (ascii, binary or LZF binary_compressed when read), extension .pcd;
+             `pcd-ascii` writes ascii; points with a NaN coordinate (missing returns of organised clouds) are left
+             out when read (io.pcd)
 - `las`, `laz` LAS 1.2-1.4 with every standard field, extra bytes and the header's CRS records (io.las)
 - `npy`      NumPy array N x 3, or N x (3 + k) with k attribute columns, extension .npy
 
@@ -135,7 +136,9 @@ def iter_point_clouds(path: str | os.PathLike, format: str | None = None,
     """Yield a file's points with their attributes (and the file's metadata) as PointCloud chunks, in file order.
 
     Binary PLY, .bin, .pcd.bin and .npy are memory-mapped and LAS/LAZ read chunk by chunk, so memory stays
-    bounded by one chunk; ASCII PLY and PCD are read whole (one chunk). Errors (PointCloudFormatError,
+    bounded by one chunk; ASCII PLY is read whole (one chunk); PCD is read whole and yielded in chunks (memory: its
+    data plus one chunk; a binary_compressed PCD's block, which stores each field for every point in turn, is
+    decompressed whole before the first chunk). Errors (PointCloudFormatError,
     InvalidPointCloudError, each one line naming the file) are raised when the bad part is reached.
     attributes=False reads the points only (no attribute columns, no SemanticKITTI label file).
     """

@@ -1,18 +1,23 @@
-"""PCD files (Point Cloud Library, header v0.7) with DATA ascii or binary: a small reader and writer.
+"""PCD files (Point Cloud Library, header v0.7): a reader of DATA ascii, binary and binary_compressed, a writer of
+DATA ascii and binary.
 
 Fields with COUNT k > 1 become attributes `name_0` .. `name_{k-1}`; padding fields named `_` are dropped.
 Points whose x, y or z is NaN, the "no return" marker of organised clouds written by PCL and ROS drivers, are left
 out with their attributes and counted (`PointCloud.nan_points_dropped`); infinite coordinates are refused.
-DATA binary_compressed (LZF) is refused with a PointCloudFormatError.
+DATA binary_compressed (pcl::io::savePCDFileBinaryCompressed, Autoware maps) is a uint32 compressed size, a uint32
+uncompressed size (points x point size, else refused) and an LZF block (io.lzf) of each field for every point in
+turn; bytes after the block are ignored, as PCL does.
 """
 
 import io
+import struct
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
+from mapsqueeze.io import lzf
 from mapsqueeze.io.atomic import atomic_output
 from mapsqueeze.io.pointcloud import (
     FLOAT32_MAX_ERROR_M,
@@ -27,6 +32,7 @@ _MAX_HEADER_BYTES = 64 * 1024
 _TYPE_CODES = {"F": "f", "I": "i", "U": "u"}
 _VALID_SIZES = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
 _PADDING_FIELD = "_"
+_COMPRESSED_SIZES = struct.Struct("<II")  # binary_compressed: compressed, uncompressed bytes
 
 
 def _parse_header(data: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
@@ -111,32 +117,9 @@ def _parse_ascii(body: bytes, dtype: np.dtype, num_points: int, path: Path) -> n
     return records
 
 
-def pcd_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
-    """A PCD file is read whole: one chunk whatever chunk_points."""
-    cloud = read_pcd(path)
-    yield cloud if attributes else PointCloud(cloud.points, nan_points_dropped=cloud.nan_points_dropped)
-
-
-def _missing_returns(xyz: np.ndarray, path: Path) -> np.ndarray:
-    """(N,) bool: the points of (N, 3) float64 `xyz` with a NaN coordinate (missing returns). Raises
-    InvalidPointCloudError for an infinite coordinate (no missing-return marker) or when every point is missing."""
-    missing = np.isnan(xyz).any(axis=1)
-    infinite = np.flatnonzero(np.isinf(xyz).any(axis=1) & ~missing)
-    if len(infinite):
-        verb = "has" if len(infinite) == 1 else "have"
-        raise InvalidPointCloudError(
-            f"{path}: {len(infinite):,} of {len(xyz):,} points {verb} infinite coordinates (the first: point "
-            f"{int(infinite[0]):,}, counting from 0; NaN marks a missing return in PCD, infinity does not)"
-        )
-    if len(xyz) and missing.all():
-        raise InvalidPointCloudError(f"{path}: no points: all {len(xyz):,} points have NaN coordinates (PCD 'no "
-                                     "return' values)")
-    return missing
-
-
-def read_pcd(path: Path) -> PointCloud:
-    """Read a PCD file with DATA ascii or binary, without the points whose x, y or z is NaN (counted in
-    `nan_points_dropped`)."""
+def _fields(path: Path) -> tuple[dict[str, np.ndarray], int]:
+    """The file's fields in header order, each an (N,) or (N, k) array over the file's data or its decompressed
+    block (padding fields included), and N, the point count."""
     data = path.read_bytes()
     header, data_offset = _parse_header(data, path)
     dtype = _record_dtype(header, path)
@@ -147,34 +130,99 @@ def read_pcd(path: Path) -> PointCloud:
             f"{path}: PCD header WIDTH x HEIGHT = {width * height:,} but POINTS = {num_points:,}"
         )
     encoding = " ".join(header["DATA"]).lower()
-    body = data[data_offset:]
     if encoding == "binary":
-        expected = num_points * dtype.itemsize
-        if len(body) != expected:
+        expected, held = num_points * dtype.itemsize, len(data) - data_offset
+        if held != expected:
             raise PointCloudFormatError(
                 f"{path}: PCD header declares {num_points:,} points of {dtype.itemsize} bytes ({expected:,} bytes), "
-                f"the file holds {len(body):,} bytes of data"
+                f"the file holds {held:,} bytes of data"
             )
-        records = np.frombuffer(body, dtype=dtype, count=num_points)
+        records = np.frombuffer(data, dtype=dtype, count=num_points, offset=data_offset)
     elif encoding == "ascii":
-        records = _parse_ascii(body, dtype, num_points, path) if num_points else np.empty(0, dtype)
+        records = _parse_ascii(data[data_offset:], dtype, num_points, path) if num_points else np.empty(0, dtype)
     elif encoding == "binary_compressed":
-        raise PointCloudFormatError(
-            f"{path}: PCD DATA binary_compressed is not supported; re-save it with DATA binary or ascii"
-        )
+        return _decompressed_fields(data, data_offset, dtype, num_points, path), num_points
     else:
         raise PointCloudFormatError(f"{path}: unknown PCD DATA encoding {encoding!r}")
-    xyz = np.column_stack([records["x"], records["y"], records["z"]]).astype(np.float64, copy=False)
-    missing = _missing_returns(xyz, path)
-    n_missing = int(np.count_nonzero(missing))
-    if n_missing:
-        xyz, records = xyz[~missing], records[~missing]
-    points = validate_points(xyz, name=str(path))
-    attributes = {}
+    return {name: records[name] for name in dtype.names}, num_points
+
+
+def _decompressed_fields(data: bytes, offset: int, dtype: np.dtype, num_points: int,
+                         path: Path) -> dict[str, np.ndarray]:
+    """The fields of a DATA binary_compressed body at byte `offset` of `data`: uint32 compressed and uncompressed
+    sizes, then an LZF block holding each field for every point in turn (structure of arrays). The sizes are
+    checked against the header and the file before the uncompressed block is allocated."""
+    if len(data) - offset < _COMPRESSED_SIZES.size:
+        raise PointCloudFormatError(f"{path}: PCD binary_compressed data ends before its sizes (truncated?)")
+    compressed, uncompressed = _COMPRESSED_SIZES.unpack_from(data, offset)
+    expected, held = num_points * dtype.itemsize, len(data) - offset - _COMPRESSED_SIZES.size
+    if uncompressed != expected:
+        raise PointCloudFormatError(
+            f"{path}: PCD header declares {num_points:,} points of {dtype.itemsize} bytes ({expected:,} bytes), "
+            f"the binary_compressed data says {uncompressed:,} bytes uncompressed"
+        )
+    if compressed > held:
+        raise PointCloudFormatError(
+            f"{path}: PCD binary_compressed data declares {compressed:,} compressed bytes, the file holds {held:,} "
+            "after the header (truncated?)"
+        )
+    if uncompressed > compressed * lzf.MAX_EXPANSION:
+        raise PointCloudFormatError(
+            f"{path}: PCD binary_compressed data declares {uncompressed:,} bytes uncompressed from {compressed:,} "
+            f"compressed, more than LZF can expand to ({lzf.MAX_EXPANSION}x)"
+        )
+    start = offset + _COMPRESSED_SIZES.size
+    try:
+        block = lzf.decompress(memoryview(data)[start : start + compressed], uncompressed)
+    except lzf.LZFError as exc:
+        raise PointCloudFormatError(f"{path}: corrupt PCD binary_compressed data (LZF: {exc})") from None
+    fields, position = {}, 0
     for name in dtype.names:
-        if name not in ("x", "y", "z") and not name.startswith(_PADDING_FIELD):
-            attributes.update(split_columns(name, records[name].copy()))
-    return PointCloud(points, attributes, nan_points_dropped=n_missing)
+        field = dtype[name]
+        fields[name] = np.frombuffer(block, dtype=field.base, count=num_points * int(np.prod(field.shape)),
+                                     offset=position).reshape(num_points, *field.shape)
+        position += num_points * field.itemsize
+    return fields
+
+
+def _missing_returns(fields: dict[str, np.ndarray], num_points: int, path: Path) -> np.ndarray:
+    """(N,) bool: the points with a NaN x, y or z (missing returns). Raises InvalidPointCloudError for an infinite
+    coordinate (no missing-return marker) or when every point is missing."""
+    missing, infinite = np.zeros(num_points, bool), np.zeros(num_points, bool)
+    for axis in ("x", "y", "z"):
+        missing |= np.isnan(fields[axis])
+        infinite |= np.isinf(fields[axis])
+    infinite = np.flatnonzero(infinite & ~missing)
+    if len(infinite):
+        verb = "has" if len(infinite) == 1 else "have"
+        raise InvalidPointCloudError(
+            f"{path}: {len(infinite):,} of {num_points:,} points {verb} infinite coordinates (the first: point "
+            f"{int(infinite[0]):,}, counting from 0; NaN marks a missing return in PCD, infinity does not)"
+        )
+    if num_points and missing.all():
+        raise InvalidPointCloudError(f"{path}: no points: all {num_points:,} points have NaN coordinates (PCD 'no "
+                                     "return' values)")
+    return missing
+
+
+def pcd_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
+    """A PCD file's points in chunks of at most chunk_points, without the points whose x, y or z is NaN (counted in
+    the first chunk's `nan_points_dropped`). The file is read whole (a binary_compressed block decompressed whole:
+    it stores each field for every point in turn), so memory is its data plus one chunk."""
+    fields, num_points = _fields(path)
+    missing = _missing_returns(fields, num_points, path)
+    n_missing = int(np.count_nonzero(missing))
+    kept = np.flatnonzero(~missing) if n_missing else None
+    n_kept = num_points - n_missing
+    names = [name for name in fields if name not in ("x", "y", "z") and not name.startswith(_PADDING_FIELD)]
+    for first in range(0, max(n_kept, 1), chunk_points):
+        rows = slice(first, first + chunk_points) if kept is None else kept[first : first + chunk_points]
+        xyz = np.column_stack([fields[axis][rows] for axis in ("x", "y", "z")]).astype(np.float64, copy=False)
+        points = validate_points(xyz, str(path), first, n_kept)
+        chunk_attributes = {}
+        for name in names if attributes else ():
+            chunk_attributes.update(split_columns(name, np.array(fields[name][rows])))
+        yield PointCloud(points, chunk_attributes, nan_points_dropped=n_missing if first == 0 else 0)
 
 
 def _format_spec(dtype: np.dtype) -> tuple[str, str, str]:
