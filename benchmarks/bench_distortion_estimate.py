@@ -46,7 +46,7 @@ def tile_candidates(local: np.ndarray, extent: np.ndarray, tile_size: np.ndarray
     yield "raw", decode_raw_tile(encode_raw_tile(local, tile_size), tile_size, len(local), "raw"), None
     if len(local) <= RAW_POINTS_PER_EMBEDDING * len(embedding.points):
         return
-    for leaf, (_, centres) in zip(OCTREE_LEAVES_M, encode_octree_tiles(local, tile_size, OCTREE_LEAVES_M)):
+    for leaf, _, centres in encode_octree_tiles(local, tile_size, OCTREE_LEAVES_M):
         yield (f"octree {leaf:g} m", octree_points(centres, extent, None),
                lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent))
     yield "network", network_points(model, embedding.points, embedding.features, extent, None), None

@@ -834,23 +834,51 @@ def test_candidate_distortion_estimates_on_samples_and_is_exact_where_candidates
 def test_octree_payloads_of_all_leaves_at_once_are_each_leafs_own(tile_size):
     """encode_octree_tiles (one sort for every leaf) gives encode_octree_tile's payload at each leaf, built directly,
     and the leaf centres its payload decodes to."""
-    from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, _leaf_codes, encode_octree_tiles, octree_depth
+    from mapsqueeze.codec.octreetile import OCTREE_LEAVES_M, encode_octree_tiles, octree_depth
+    from mapsqueeze.geometry.morton import morton_codes
     from mapsqueeze.baselines.octree import arithmetic_encode, occupancy_levels
 
     rng = np.random.default_rng(8)
     points = np.concatenate([rng.uniform(0, 1, (5000, 3)) * tile_size,
                              np.round(rng.uniform(0, 1, (500, 3)) * tile_size / 0.4) * 0.4])  # on leaf faces
     points = np.clip(points, 0, tile_size)
-    for leaf, (payload, centres) in zip(OCTREE_LEAVES_M, encode_octree_tiles(points, tile_size, OCTREE_LEAVES_M)):
+    coded = encode_octree_tiles(points, tile_size, OCTREE_LEAVES_M)
+    assert [leaf for leaf, _, _ in coded] == [float(np.float32(leaf)) for leaf in OCTREE_LEAVES_M]
+    for leaf, payload, centres in coded:
         edge = float(np.float32(leaf))
         depth = octree_depth(tile_size, edge)
-        codes = _leaf_codes(points, edge, depth)
+        codes = np.unique(morton_codes(np.clip(np.floor(points / edge), 0, (1 << depth) - 1).astype(np.int64), depth))
         writer = ByteWriter()
         writer.pack("fB", edge, depth)
         writer.varint(len(codes))
         writer.raw(arithmetic_encode(occupancy_levels(codes, depth)))
         assert payload == writer.getvalue()
         assert np.array_equal(centres, decode_octree_tile(payload, tile_size, len(points), "test"))
+
+
+@pytest.mark.parametrize("tile_size", [TILE, np.array([40.0, 40.0, 15.0]), np.array([1.0, 0.9, 0.5])])
+def test_octree_payloads_under_a_byte_bound_stop_after_the_first_too_large(tile_size, real_data):
+    """encode_octree_tiles with max_bytes: the payloads of encode_octree_tiles without it, coarsest first up to and
+    including the first larger than max_bytes + OCTREE_GROWTH_SLACK_BYTES, none finer; payloads grow with the
+    fineness (what the stop relies on) on random and on real points."""
+    from mapsqueeze.codec.octreetile import OCTREE_GROWTH_SLACK_BYTES, OCTREE_LEAVES_M, encode_octree_tiles
+
+    rng = np.random.default_rng(9)
+    clouds = [np.clip(rng.uniform(0, 1, (n, 3)) * tile_size, 0, tile_size) for n in (1, 40, 3000)]
+    if tile_size[0] == 40.0:
+        real = read_points(real_data / "submaps" / "kitti_hdl64_6scans.ply")
+        clouds.append(np.clip(real - real.min(axis=0), 0, tile_size))
+    for points in clouds:
+        full = encode_octree_tiles(points, tile_size, OCTREE_LEAVES_M)
+        sizes = [len(payload) for _, payload, _ in full]  # finest first
+        assert all(finer >= coarser - OCTREE_GROWTH_SLACK_BYTES for finer, coarser in zip(sizes, sizes[1:]))
+        for bound in sorted({0, *sizes, max(sizes) + 100}):
+            kept = encode_octree_tiles(points, tile_size, OCTREE_LEAVES_M, bound)
+            first_over = next((i for i in range(len(full) - 1, -1, -1)
+                               if sizes[i] > bound + OCTREE_GROWTH_SLACK_BYTES), -1)
+            expected = full[first_over:] if first_over >= 0 else full
+            assert [(leaf, payload) for leaf, payload, _ in kept] == [(leaf, payload) for leaf, payload, _ in expected]
+            assert all(np.array_equal(a[2], b[2]) for a, b in zip(kept, expected))
 
 
 def test_keep_inside_keeps_the_points_in_the_closed_box_and_clamps_when_none_is():

@@ -13,6 +13,7 @@ import numpy as np
 
 from mapsqueeze.codec.entropy import ByteReader, ByteWriter
 from mapsqueeze.errors import ContainerError
+from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.morton import MAX_BITS, morton_cells, morton_codes, sorted_unique
 
 OCTREE_LEAVES_M = (0.1, 0.2, 0.4, 0.8, 1.6)
@@ -35,16 +36,23 @@ def octree_depth(tile_size: np.ndarray, leaf_m: float) -> int:
 
 def encode_octree_tile(points_local: np.ndarray, tile_size: np.ndarray, leaf_m: float) -> bytes:
     """Points (N, 3) metres relative to the tile frame, in [0, tile_size] -> octree payload."""
-    return encode_octree_tiles(points_local, tile_size, (leaf_m,))[0][0]
+    return encode_octree_tiles(points_local, tile_size, (leaf_m,))[0][1]
 
 
-def encode_octree_tiles(points_local: np.ndarray, tile_size: np.ndarray,
-                        leaves_m: tuple[float, ...]) -> list[tuple[bytes, np.ndarray]]:
-    """`encode_octree_tile` at each leaf edge of leaves_m, with the leaf centres (K, 3) float32 metres its payload
-    decodes to (`decode_octree_tile`'s, in Morton order). One sort serves every leaf whose float32 edge is the
-    finest's times 2^s and whose octree is s levels shallower (OCTREE_LEAVES_M in tiles wider than 1.6 m): its
-    leaves are the finest's Morton codes shifted right by 3 s bits (floor(p / (2^s l)) = floor(p / l) >> s, both in
-    float arithmetic, as scaling by 2^s is exact) and its occupancy levels the finest's first ones."""
+def encode_octree_tiles(points_local: np.ndarray, tile_size: np.ndarray, leaves_m: tuple[float, ...],
+                        max_bytes: int | None = None) -> list[tuple[float, bytes, np.ndarray]]:
+    """(leaf edge, `encode_octree_tile` payload, the leaf centres (K, 3) float32 metres it decodes to, in Morton
+    order) at each leaf edge of leaves_m, in their order.
+
+    A leaf whose float32 edge is the finest's times 2^s and whose octree is s levels shallower (OCTREE_LEAVES_M in
+    tiles wider than 1.6 m) is nested in the finest's octree: its cells are the finest's shifted right by s bits
+    (floor(p / (2^s l)) = floor(p / l) >> s, both in float arithmetic, as scaling by 2^s is exact), its Morton codes
+    the finest's shifted right by 3 s bits and its occupancy levels the finest's first ones, so one sort of the
+    finest's codes serves every nested leaf. max_bytes given: the leaves coarsest first, leaving out those finer
+    than the first whose payload exceeds max_bytes + OCTREE_GROWTH_SLACK_BYTES, as theirs would exceed max_bytes too
+    (a finer octree codes the coarser one's levels under the same models, plus more levels); the nested leaves whose
+    cell box is small enough for a bitmap take their distinct cells from one (`_distinct_cells`, one pass over the
+    points for all of them), and the sort is made only if a finer leaf is coded."""
     from mapsqueeze.baselines.octree import arithmetic_encode, occupancy_levels  # the CLI starts without them
 
     if not leaves_m:
@@ -53,31 +61,84 @@ def encode_octree_tiles(points_local: np.ndarray, tile_size: np.ndarray,
     leaves = [float(np.float32(leaf)) for leaf in leaves_m]
     finest = min(leaves)
     finest_depth = octree_depth(tile_size, finest)
-    finest_codes = _leaf_codes(points, finest, finest_depth)
-    finest_levels = occupancy_levels(finest_codes, finest_depth)
-    coded = []
-    for leaf in leaves:
+    finest_cells = _cells(points, finest, finest_depth)
+    shifts = {leaf: finest_depth - octree_depth(tile_size, leaf) for leaf in leaves}
+    nested = {leaf: shift for leaf, shift in shifts.items() if leaf == finest * 2.0**shift}
+    shared: list = []  # the finest's sorted distinct codes and occupancy levels, once a leaf needs them
+    distinct: dict[int, np.ndarray] = {}  # distinct cells of the bitmap leaves, by shift
+    bitmap_shifts = []
+    if max_bytes is not None and len(points):  # the finest cells' upper corner (floor and the clip are monotonic)
+        top = _cells(bounding_box(points)[1][None, :], finest, finest_depth)[0]
+        bitmap_shifts = [shift for shift in nested.values()
+                         if np.prod((top >> shift) + 1) <= BITMAP_CELLS_PER_POINT * len(points)]
+
+    def codes_and_levels(leaf: float, depth: int) -> tuple[np.ndarray, list[np.ndarray]]:
+        shift = nested.get(leaf)
+        if shift is None:
+            codes = sorted_unique(morton_codes(_cells(points, leaf, depth), depth))
+            return codes, occupancy_levels(codes, depth)
+        if shift in bitmap_shifts:
+            if not distinct:
+                first = min(bitmap_shifts)
+                distinct[first] = _distinct_cells(finest_cells >> first, (top >> first) + 1)
+            base = max(known for known in distinct if known <= shift)
+            if shift not in distinct:
+                distinct[shift] = _distinct_cells(distinct[base] >> (shift - base))
+            codes = np.sort(morton_codes(distinct[shift], depth))
+            return codes, occupancy_levels(codes, depth)
+        if not shared:
+            finest_codes = sorted_unique(morton_codes(finest_cells, finest_depth))
+            shared.extend([finest_codes, occupancy_levels(finest_codes, finest_depth)])
+        codes = shared[0] >> (3 * shift)
+        return codes[np.concatenate([[True], codes[1:] != codes[:-1]])], shared[1][:depth]
+
+    coded = {}
+    for leaf in sorted(set(leaves), reverse=True):
         depth = octree_depth(tile_size, leaf)
-        shift = finest_depth - depth
-        if leaf == finest * 2.0**shift:
-            codes = finest_codes >> (3 * shift)
-            codes = codes[np.concatenate([[True], codes[1:] != codes[:-1]])]
-            levels = finest_levels[:depth]
-        else:
-            codes = _leaf_codes(points, leaf, depth)
-            levels = occupancy_levels(codes, depth)
+        codes, levels = codes_and_levels(leaf, depth)
         writer = ByteWriter()
         writer.pack("fB", leaf, depth)
         writer.varint(len(codes))
         writer.raw(arithmetic_encode(levels))
-        coded.append((writer.getvalue(), _leaf_centres(morton_cells(codes), leaf)))
-    return coded
+        coded[leaf] = (writer.getvalue(), codes)
+        if max_bytes is not None and len(coded[leaf][0]) > max_bytes + OCTREE_GROWTH_SLACK_BYTES:
+            break
+    return [(leaf, coded[leaf][0], _leaf_centres(morton_cells(coded[leaf][1]), leaf))
+            for leaf in leaves if leaf in coded]
 
 
-def _leaf_codes(points: np.ndarray, leaf_m: float, depth: int) -> np.ndarray:
-    """Sorted distinct Morton codes of the points' leaves (cells of edge leaf_m clipped into the depth's cube)."""
-    cells = np.clip(np.floor(points / leaf_m), 0, (1 << depth) - 1).astype(np.int64)
-    return sorted_unique(morton_codes(cells, depth))
+OCTREE_GROWTH_SLACK_BYTES = 16
+"""Bytes by which a finer octree's payload may fall short of a coarser one's (`encode_octree_tiles`): its ANS
+stream holds the coarser one's levels under the same per-level models plus more levels, so it is at least that
+stream less the coder's final 32-bit words; the leaf count's varint is at least as long."""
+
+BITMAP_CELLS_PER_POINT = 16
+"""`_distinct_cells` finds the occupied cells on a dense bitmap of their box when it holds at most this many cells
+per point (one pass), else by sorting the cells' packed keys."""
+
+
+def _cells(points: np.ndarray, leaf_m: float, depth: int) -> np.ndarray:
+    """(N, 3) int64 leaf cells of the points: floor(p / leaf_m) clipped into the depth's cube."""
+    scaled = np.divide(points, leaf_m)
+    np.floor(scaled, out=scaled)
+    np.clip(scaled, 0, (1 << depth) - 1, out=scaled)
+    return scaled.astype(np.int64)
+
+
+def _distinct_cells(cells: np.ndarray, dims: np.ndarray | None = None) -> np.ndarray:
+    """The distinct rows of (N, 3) non-negative int64 cells, (K, 3), in the order of their packed keys; dims: their
+    largest values plus one per axis, when known."""
+    if not len(cells):
+        return cells
+    dims = cells.max(axis=0) + 1 if dims is None else dims
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    if int(np.prod(dims)) <= BITMAP_CELLS_PER_POINT * len(cells):
+        occupied = np.zeros(int(np.prod(dims)), dtype=bool)
+        occupied[keys] = True
+        keys = np.flatnonzero(occupied)
+    else:
+        keys = sorted_unique(keys)
+    return np.stack(np.unravel_index(keys, tuple(int(d) for d in dims)), axis=1)
 
 
 def _leaf_centres(cells: np.ndarray, leaf_m: float) -> np.ndarray:

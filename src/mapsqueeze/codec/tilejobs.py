@@ -147,7 +147,8 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
     if embedding is None:
         return _candidates(classical, distortion.settle()), None, OFF, None
     leaves = OCTREE_LEAVES_M if target.fallback else ()
-    for leaf, (payload, centres) in zip(leaves, encode_octree_tiles(local, tile_size, leaves)):
+    octrees = encode_octree_tiles(local, tile_size, leaves, None if target.given else network_bytes)
+    for leaf, payload, centres in octrees:  # without a target, none the rule cannot pick beyond the first too large
         distortion.add(lambda centres=centres: octree_points(centres, extent, None),
                        lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent, job.compiled),
                        competing(payload))
