@@ -381,6 +381,9 @@ def test_info_names_a_custom_model_as_custom(run_cli, map_file, tiny_model_dir, 
     mapsqueeze.compress_file(map_file, msq, str(tiny_model_dir))
     code, out, _ = run_cli("info", str(msq))
     assert code == 0 and "custom, named 'e1'" in out and "--model PATH" in out
+    lines = out.splitlines()  # piped: one aligned line per row, no padding after the value
+    assert lines[0].startswith("model ") and all(line == line.rstrip() for line in lines)
+    assert len({len(line) - len(line[line.index("  "):].lstrip()) for line in lines}) == 1
 
 
 def test_compress_reports_raw_tiles(run_cli, tiny_model_dir, tmp_path):

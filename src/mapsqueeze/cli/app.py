@@ -65,3 +65,19 @@ def make_console(stderr: bool = False) -> Console:
         return Console(stderr=stderr)
     return Console(stderr=stderr, width=10_000, soft_wrap=True, no_color=True, highlight=False, emoji=False)
 
+
+
+def print_rows(rows: list[tuple[str, str]]) -> None:
+    """(name, value) rows on stdout, the values aligned: a rich table on a terminal; piped or redirected, one plain
+    line per row without the trailing spaces a table pads its last column with."""
+    if sys.stdout.isatty():
+        from rich.table import Table
+
+        table = Table(show_header=False, box=None)
+        for name, value in rows:
+            table.add_row(name, value)
+        make_console().print(table)
+        return
+    width = max((len(name) for name, _ in rows), default=0)
+    for name, value in rows:
+        print(f"{name:<{width}}  {value}".rstrip())

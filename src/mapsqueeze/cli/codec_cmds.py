@@ -6,10 +6,9 @@ from pathlib import Path
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-from rich.table import Table
 
 from mapsqueeze import api
-from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, nan_points_line, parse_numbers
+from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, nan_points_line, parse_numbers, print_rows
 from mapsqueeze.cli.io_cmds import warn_dropped
 from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
@@ -173,7 +172,6 @@ def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq f
     else:
         model = (f"custom, named {summary.model_id!r} (weights sha256 {summary.weights_sha256[:16]}..., not a "
                  "shipped model: decompress needs --model PATH)")
-    table = Table(show_header=False, box=None)
     rows = [
         ("model", model),
         ("precision", summary.precision),
@@ -198,6 +196,4 @@ def info_command(msq: Path = typer.Argument(..., metavar="MAP.msq", help=".msq f
                      + ", ".join(f"{v:g}" for v in las["scales"]) + ", offsets "
                      + ", ".join(f"{v:g}" for v in las["offsets"]) + f", {len(las['vlrs'])} VLRs, "
                      f"{len(las['evlrs'])} EVLRs, extra bytes: {', '.join(las['extra_bytes']) or 'none'}"))
-    for name, value in rows:
-        table.add_row(name, value)
-    make_console().print(table)
+    print_rows(rows)
