@@ -347,6 +347,30 @@ def test_tiles_with_points_on_faces_of_an_inexact_grid():
         assert np.abs(tile.origin + local - points[tile.point_indices]).max() < 1e-6
 
 
+@pytest.mark.parametrize("grid", ["fitted", "origin", "origin and shape"])
+def test_tiles_are_the_points_grouped_by_their_floor_index(grid):
+    rng = np.random.default_rng(8)
+    points = UTM_OFFSET_M + rng.uniform([-60, -50, -20], [70, 45, 20], (30_000, 3))
+    points[:100] = points[100:200]  # repeated points land in one tile
+    size = np.array([40.0, 30.0, 15.0])
+    origin, shape = fit_grid(points.min(axis=0), points.max(axis=0), size)
+    if grid == "origin":
+        origin = UTM_OFFSET_M + 1.25  # points below it: negative indices
+    rows = np.floor((points - origin) / size).astype(np.int64)
+    if grid == "origin and shape":
+        shape = shape - 1  # the last tiles of each axis take the points beyond them
+        rows = np.clip(rows, 0, shape - 1)
+    given = {"fitted": {}, "origin": {"origin": origin}, "origin and shape": {"origin": origin, "shape": shape}}
+    tiles = tile_map(points, size, **given[grid])
+    distinct, which = np.unique(rows, axis=0, return_inverse=True)
+    assert (distinct < 0).any() == (grid == "origin") and len(tiles) == len(distinct) > 4
+    for tile, index, number in zip(tiles, distinct, range(len(distinct))):
+        assert tile.index == tuple(index.tolist())
+        assert tile.point_indices.dtype == np.int64
+        np.testing.assert_array_equal(tile.point_indices, np.flatnonzero(which.reshape(-1) == number))
+        np.testing.assert_array_equal(tile.origin, origin + index * size)
+
+
 def test_tiles_skip_empty_cells_and_follow_a_given_origin():
     points = np.array([[0.5, 0.5, 0.5], [95.0, 0.5, 0.5], [-0.5, 0.5, 0.5]])
     tiles = tile_map(points, tile_size=10.0, origin=[0.0, 0.0, 0.0])

@@ -29,10 +29,15 @@ def to_local(points: np.ndarray, origin: np.ndarray, size: np.ndarray | None = N
     """
     points, origin = np.asarray(points, dtype=np.float64), np.asarray(origin, dtype=np.float64)
     local = np.empty(np.broadcast_shapes(points.shape, origin.shape), dtype=np.float32)
-    np.subtract(points, origin, out=local, casting="unsafe")  # float64 differences rounded to float32, no temporary
-    if size is not None:
-        upper = np.nextafter(np.asarray(size, dtype=np.float32), np.float32(0))
-        np.clip(local, np.float32(0), upper, out=local)
+    points, origin = np.broadcast_to(points, local.shape), np.broadcast_to(origin, local.shape[-1:])
+    upper = None if size is None else np.broadcast_to(
+        np.nextafter(np.asarray(size, dtype=np.float32), np.float32(0)), local.shape[-1:])
+    # axis by axis on the strided columns: numpy's (N, 3) - (3,) runs a 3-long inner loop per row (2-5x slower)
+    for axis in range(local.shape[-1]):
+        column = local[..., axis]
+        np.subtract(points[..., axis], origin[axis], out=column, casting="unsafe")  # float64 rounded to float32
+        if upper is not None:
+            np.clip(column, np.float32(0), upper[axis], out=column)
     return local
 
 
@@ -86,12 +91,19 @@ def tile_map(
         anchor = np.asarray(origin, dtype=np.float64).reshape(3)
     # A point on a face whose grid line float64 cannot represent exactly may fall a hair (~1e-10 m) outside its
     # tile's box; `to_local` clamps it.
-    indices = np.floor((points - anchor) / size).astype(np.int64)
-    if shape is not None:
-        np.clip(indices, 0, np.asarray(shape, dtype=np.int64) - 1, out=indices)
+    indices = np.empty((3, len(points)), dtype=np.int64).T  # (N, 3), each axis's column contiguous
+    # axis by axis (as `to_local`): the same operations on each value, ~9x faster than on the (N, 3) array
+    column = np.empty(len(points))
+    for axis in range(3):
+        np.subtract(points[:, axis], anchor[axis], out=column)
+        column /= size[axis]
+        indices[:, axis] = np.floor(column, out=column)
+        if shape is not None:
+            np.clip(indices[:, axis], 0, int(shape[axis]) - 1, out=indices[:, axis])
     keys = pack_indices(indices)
     order = np.argsort(keys, kind="stable")
-    starts = np.flatnonzero(np.r_[True, keys[order][1:] != keys[order][:-1]])
+    sorted_keys = keys[order]
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
     tiles = []
     for group in np.split(order, starts[1:]):
         index = indices[group[0]]
