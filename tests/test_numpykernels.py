@@ -10,6 +10,7 @@ import pytest
 
 import mapsqueeze
 from mapsqueeze.codec import compress as compress_module
+from mapsqueeze.codec.tilepoints import keep_inside
 from mapsqueeze.codec.postfilter import PATCH_OPTIONS, PATCH_STRENGTH
 from mapsqueeze.geometry import (
     cells,
@@ -23,6 +24,7 @@ from mapsqueeze.geometry import (
     occupancy,
     occupancynumpy,
 )
+from mapsqueeze.geometry.inside import points_inside
 from mapsqueeze.metrics import IOU_VOXEL_M
 from mapsqueeze.model import influences, influencesnumpy
 from mapsqueeze.model.kernels import grid_kernel_points
@@ -148,6 +150,29 @@ def test_the_numpy_influences_are_the_compiled_ones():
             expected = influences.cpu_influences(queries, points, neighbors, kernel_points, 0.03, first, stop)
             found = influencesnumpy.cpu_influences(queries, points, neighbors, kernel_points, 0.03, first, stop)
             assert found.tobytes() == expected.tobytes()
+
+
+def test_the_numpy_crop_to_the_box_is_the_compiled_one():
+    upper = EXTENT.astype(np.float32)
+    rng = np.random.default_rng(9)
+    near_faces = (rng.uniform(-1, 1, (20_000, 3)) * 0.05 + rng.choice([0.0, 1.0], (20_000, 3)) * upper)
+    spread = rng.uniform(-0.5, 1.5, (20_000, 3)) * upper
+    special = np.array([[0, 0, 0], upper, [-0.0, 1, 1], [np.nan, 1, 1], [1, np.inf, 1], [1, 1, -np.inf],
+                        [np.nextafter(np.float32(0), np.float32(-1)), 1, 1], [1, 1, np.nextafter(upper[2], 99)]])
+    clouds = {"empty": np.empty((0, 3)), "none inside": spread[(spread > upper).any(axis=1)],
+              "all inside": np.clip(spread, 0, upper), "near the faces": near_faces, "spread": spread,
+              "special values": np.concatenate([special, spread[:50], special])}
+    for name, cloud in clouds.items():
+        for dtype in (np.float32, np.float64):
+            cloud = np.asarray(cloud, dtype=dtype)
+            expected, found = keep_inside(cloud, EXTENT), keep_inside(cloud, EXTENT, compiled=True)
+            assert found.dtype == expected.dtype and found.shape == expected.shape, name
+            assert found.tobytes() == expected.tobytes(), name
+            assert found.flags.c_contiguous
+    assert len(keep_inside(clouds["special values"], EXTENT, compiled=True)) == 2 * 3 + np.sum(
+        (spread[:50] >= 0).all(axis=1) & (spread[:50] <= upper).all(axis=1))
+    assert 0 < len(points_inside(clouds["spread"], upper)) < len(clouds["spread"])
+    assert len(points_inside(clouds["none inside"], upper)) == 0
 
 
 def test_the_numpy_cell_distances_are_the_compiled_ones():

@@ -156,12 +156,12 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
     post_filter, search = OFF, None
     if target.post_filter == "auto":
         post_filter, network_d_e = choose_post_filter(
-            local, network_points(model, *embedding, extent, None), frame, lambda cloud: keep_inside(cloud, extent))
+            local, network_points(model, *embedding, extent, None), frame, lambda cloud: keep_inside(cloud, extent, job.compiled))
         d_e = distortion.settle()
     else:
         if target.post_filter == "patch":
             uncropped = model.decode(*embedding)
-            decoded = keep_inside(uncropped, extent)
+            decoded = keep_inside(uncropped, extent, job.compiled)
             if target.given:
                 post_filter = choose_patch_filter(local + frame, uncropped, decoded, model.config.upsampling_factors,
                                                   frame, extent, job.compiled)
@@ -197,7 +197,7 @@ def _patch_choices(tile_points: np.ndarray, local: np.ndarray, frame: np.ndarray
     search = search_from(CHOICE_SEARCH_START)
     if choices_pay_clearly(search, network_bytes):
         return CHOICE_SEARCH_START, search
-    setting = choose_patch_filter(local + frame, uncropped, keep_inside(uncropped, extent), factors, frame, extent,
+    setting = choose_patch_filter(local + frame, uncropped, keep_inside(uncropped, extent, compiled), factors, frame, extent,
                                   compiled)
     return setting, (search if setting == CHOICE_SEARCH_START or search is None else search_from(setting))
 
