@@ -18,6 +18,7 @@ from mapsqueeze.io import (
     PointCloud,
     atomic_output,
     atomic_write_bytes,
+    drop_zero_points,
     iter_point_clouds,
     lzf,
     read_point_cloud,
@@ -67,6 +68,25 @@ def coordinate_tolerance_m(fmt: str, points: np.ndarray) -> float:
 def assert_single_line_naming(excinfo, path: Path) -> None:
     message = str(excinfo.value)
     assert path.name in message and "\n" not in message, message
+
+
+def test_drop_zero_points_leaves_out_exactly_the_rows_at_the_origin():
+    rng = np.random.default_rng(3)
+    points = rng.choice([0.0, -0.0, 1.5, np.nan, -2.0], (5000, 3))
+    points[:3] = [[0.0, 0.0, 0.0], [-0.0, 0.0, -0.0], [0.0, 0.0, 1e-300]]
+    zero = np.array([all(value == 0 for value in row) for row in points.tolist()])
+    assert zero[:2].all() and not zero[2] and 0 < zero.sum() < len(points)
+    kept, n_zero = drop_zero_points(points)
+    assert n_zero == zero.sum() and kept.tobytes() == points[~zero].tobytes()
+    whole = np.nan_to_num(points[3:], nan=7.0)
+    for dtype in (np.float32, np.int32):
+        kept, n_zero = drop_zero_points(whole.astype(dtype))
+        assert n_zero == zero[3:].sum() and np.array_equal(kept, whole[~zero[3:]].astype(dtype))
+    nonzero = points[~zero]
+    assert drop_zero_points(nonzero)[0] is nonzero and drop_zero_points(nonzero)[1] == 0
+    with pytest.raises(InvalidPointCloudError, match="all 2 points lie at"):
+        drop_zero_points(points[:2])
+    assert len(drop_zero_points(points[:2], allow_empty=True)[0]) == 0
 
 
 # ---- round trips -------------------------------------------------------------------------------------------------
