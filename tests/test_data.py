@@ -94,6 +94,10 @@ def test_pack_indices_sorts_like_rows_and_rejects_out_of_range():
     rows = np.random.default_rng(2).integers(-50, 50, (1000, 3))
     keys = pack_indices(rows)
     assert np.array_equal(np.argsort(keys, kind="stable"), np.lexsort(rows.T[::-1]))
+    based = pack_indices(rows, base=np.full(3, -50), bits=7)
+    assert np.array_equal(np.argsort(based, kind="stable"), np.lexsort(rows.T[::-1]))
+    for base in (-50, [[-50, -50, -50]]):  # any base that broadcasts against the rows
+        assert np.array_equal(pack_indices(rows, base=base, bits=7), based)
     with pytest.raises(InvalidPointCloudError):
         pack_indices(np.array([[0, 0, 8]]), base=np.zeros(3, dtype=np.int64), bits=3)
 

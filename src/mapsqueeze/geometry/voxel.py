@@ -62,7 +62,7 @@ def pack_indices(indices: np.ndarray, base: np.ndarray | None = None, bits: int 
     indices = np.asarray(indices, dtype=np.int64).reshape(-1, 3)
     if len(indices) == 0:
         return np.empty(0, dtype=np.int64)
-    base = bounding_box(indices)[0] if base is None else np.broadcast_to(base, (3,))
+    base = bounding_box(indices)[0] if base is None else np.broadcast_to(np.asarray(base).reshape(-1), (3,))
     offsets = [indices[:, axis] - base[axis] for axis in range(3)]  # axis by axis: ~5x faster than (N, 3) - (3,)
     if bits is None:
         spans = np.array([column.max() for column in offsets]) + 1
