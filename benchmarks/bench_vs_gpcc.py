@@ -8,9 +8,12 @@ as a binary PLY. mapsqueeze runs as the CLI does (`mapsqueeze compress` / `decom
 one worker per core); G-PCC is `tmc3` trisoup (10 cm cells, nodes of 2^3 cells, --partitionMethod=2, the options of
 `mapsqueeze.baselines.gpcc`) on the same points, quantised to 1 mm as the wrapper does. Every command runs in a
 fresh process tree pinned to the first CORES cores; each figure is the median of --repeats runs: wall seconds, CPU
-seconds of the whole process tree and its peak resident memory (the sum over the tree's processes, sampled every
-50 ms: RSS, which counts the pages processes share, e.g. torch's libraries, once per process, and PSS, which
-splits them among the processes sharing them). The side-by-side run also checks that `--workers 1`, the default
+seconds of the whole process tree and its peak resident memory (RSS, the sum over the tree's processes sampled
+every 50 ms, which counts the pages processes share, e.g. torch's libraries, once per process). PSS, which splits
+shared pages among the processes sharing them, comes from one more run of each command: reading it parses every
+process's /proc/PID/smaps (~7 ms for mapsqueeze's), which at every sample took a tenth of a core from the command
+measured and so lengthened the multi-threaded one (mapsqueeze's compress: +0.1-0.3 s wall) more than G-PCC's
+single thread; the timed runs read RSS alone (/proc/PID/statm, ~10 us). The side-by-side run also checks that `--workers 1`, the default
 workers and `--dask-scheduler local` give byte-identical .msq files and decoded clouds. The machine is shared:
 the load average is printed with every row; CPU seconds are the steadier comparison. mapsqueeze's sources are
 compiled to bytecode first, as installing the package does (`compile_package`).
@@ -39,8 +42,9 @@ TRISOUP = {"mode": "trisoup", "cell_m": 0.1, "node_log2": 3}
 SAMPLE_S = 0.05
 
 
-def measure(command: list[str], cores: int = CORES) -> dict:
-    """Run a command pinned to `cores` cores; wall s, CPU s and peak RSS (MB) of its process tree.
+def measure(command: list[str], cores: int = CORES, proportional: bool = False) -> dict:
+    """Run a command pinned to `cores` cores; wall s, CPU s and peak RSS (MB) of its process tree, and with
+    `proportional` its peak PSS (MB; sampling it slows the command, see the module's docstring).
 
     CPU: the larger of /usr/bin/time's user + system seconds (exact for the command and the descendants it waits
     for) and the sum over every process of the tree sampled every SAMPLE_S (which also sees descendants that others
@@ -59,8 +63,11 @@ def measure(command: list[str], cores: int = CORES) -> dict:
             try:
                 times = process.cpu_times()
                 cpu[process.pid] = times.user + times.system
-                memory = process.memory_full_info()
-                rss, pss = rss + memory.rss, pss + memory.pss
+                if proportional:
+                    memory = process.memory_full_info()
+                    rss, pss = rss + memory.rss, pss + memory.pss
+                else:
+                    rss += process.memory_info().rss
             except psutil.Error:
                 pass
         peak, peak_proportional = max(peak, rss), max(peak_proportional, pss)
@@ -70,8 +77,9 @@ def measure(command: list[str], cores: int = CORES) -> dict:
         raise SystemExit(f"{' '.join(command)} failed: {root.stderr.read().decode()[-2000:]}")
     user_s, system_s, max_rss_kb = Path(report.name).read_text().split()[-3:]
     os.unlink(report.name)
-    return {"wall_s": wall, "cpu_s": max(float(user_s) + float(system_s), sum(cpu.values())),
-            "peak_rss_mb": max(peak / 2**20, int(max_rss_kb) / 1024), "peak_pss_mb": peak_proportional / 2**20}
+    result = {"wall_s": wall, "cpu_s": max(float(user_s) + float(system_s), sum(cpu.values())),
+              "peak_rss_mb": max(peak / 2**20, int(max_rss_kb) / 1024)}
+    return {**result, "peak_pss_mb": peak_proportional / 2**20} if proportional else result
 
 
 def _children(process: psutil.Process) -> list:
@@ -142,7 +150,9 @@ def side_by_side(copies: int, repeats: int, out: Path) -> dict:
             for _ in range(repeats):
                 runs.append({**measure(command), "load_1min": os.getloadavg()[0]})
                 print(f"{name}: {runs[-1]} (load {load()})", flush=True)
-            rows[name] = median_of(runs)
+            memory = measure(command, proportional=True)
+            print(f"{name}, memory run: {memory} (load {load()})", flush=True)
+            rows[name] = {**median_of(runs), "peak_pss_mb": memory["peak_pss_mb"]}
         results["rows"] = rows
         results["bytes"] = {"mapsqueeze": (folder / "map.msq").stat().st_size, "G-PCC trisoup": stream.stat().st_size}
         results["identity"] = identical_bytes(source, folder)
