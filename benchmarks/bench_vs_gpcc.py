@@ -7,16 +7,18 @@ The map is copies x copies mirrored copies of the real KITTI submap (benchmarks/
 as a binary PLY. mapsqueeze runs as the CLI does (`mapsqueeze compress` / `decompress`, default settings: e1, q,
 one worker per core); G-PCC is `tmc3` trisoup (10 cm cells, nodes of 2^3 cells, --partitionMethod=2, the options of
 `mapsqueeze.baselines.gpcc`) on the same points, quantised to 1 mm as the wrapper does. Every command runs in a
-fresh process tree pinned to the first CORES cores; each figure is the median of --repeats runs: wall seconds, CPU
-seconds of the whole process tree and its peak resident memory (RSS, the sum over the tree's processes sampled
-every 50 ms, which counts the pages processes share, e.g. torch's libraries, once per process). PSS, which splits
-shared pages among the processes sharing them, comes from one more run of each command: reading it parses every
-process's /proc/PID/smaps (~7 ms for mapsqueeze's), which at every sample took a tenth of a core from the command
-measured and so lengthened the multi-threaded one (mapsqueeze's compress: +0.1-0.3 s wall) more than G-PCC's
-single thread; the timed runs read RSS alone (/proc/PID/statm, ~10 us). The side-by-side run also checks that `--workers 1`, the default
-workers and `--dask-scheduler local` give byte-identical .msq files and decoded clouds. The machine is shared:
-the load average is printed with every row; CPU seconds are the steadier comparison. mapsqueeze's sources are
-compiled to bytecode first, as installing the package does (`compile_package`).
+fresh process tree pinned to the first CORES cores, the four commands in turn --repeats times (so that a drift of
+the machine's speed reaches them alike); each figure is the median of a command's runs (`wall_ratios`: the median
+over the rounds of mapsqueeze's wall time over G-PCC's): wall seconds, CPU seconds of the whole process tree and
+its peak resident memory (RSS, the sum over the tree's processes sampled every 50 ms, which counts the pages
+processes share, e.g. torch's libraries, once per process). PSS, which splits shared pages among the processes
+sharing them, comes from one more run of each command: reading it parses every process's /proc/PID/smaps (~7 ms
+for mapsqueeze's), which at every sample took a tenth of a core from the command measured and so lengthened the
+multi-threaded one (mapsqueeze's compress: +0.1-0.3 s wall) more than G-PCC's single thread; the timed runs read
+RSS alone (/proc/PID/statm, ~10 us). The side-by-side run also checks that `--workers 1`, the default workers and
+`--dask-scheduler local` give byte-identical .msq files and decoded clouds. The machine is shared: the load
+average is printed with every row; CPU seconds are the steadier comparison. mapsqueeze's sources are compiled to
+bytecode first, as installing the package does (`compile_package`).
 """
 
 import argparse
@@ -143,17 +145,23 @@ def side_by_side(copies: int, repeats: int, out: Path) -> dict:
         write_points(source, points)
         compress, decompress = mapsqueeze_commands(source, folder / "map.msq", folder / "decoded.ply")
         gpcc_encode, gpcc_decode, stream = gpcc_commands(points, folder)
+        commands = {"mapsqueeze compress": compress, "mapsqueeze decompress": decompress,
+                    "G-PCC trisoup encode": gpcc_encode, "G-PCC trisoup decode": gpcc_decode}
+        runs = {name: [] for name in commands}
+        for _ in range(repeats):  # round-robin, so that a drift of the machine's speed reaches every command alike
+            for name, command in commands.items():
+                runs[name].append({**measure(command), "load_1min": os.getloadavg()[0]})
+                print(f"{name}: {runs[name][-1]} (load {load()})", flush=True)
         rows = {}
-        for name, command in (("mapsqueeze compress", compress), ("mapsqueeze decompress", decompress),
-                              ("G-PCC trisoup encode", gpcc_encode), ("G-PCC trisoup decode", gpcc_decode)):
-            runs = []
-            for _ in range(repeats):
-                runs.append({**measure(command), "load_1min": os.getloadavg()[0]})
-                print(f"{name}: {runs[-1]} (load {load()})", flush=True)
+        for name, command in commands.items():
             memory = measure(command, proportional=True)
             print(f"{name}, memory run: {memory} (load {load()})", flush=True)
-            rows[name] = {**median_of(runs), "peak_pss_mb": memory["peak_pss_mb"]}
+            rows[name] = {**median_of(runs[name]), "peak_pss_mb": memory["peak_pss_mb"]}
         results["rows"] = rows
+        results["wall_ratios"] = {  # per round, mapsqueeze's run over G-PCC's of the same round: the median
+            f"{ours} / {theirs}": statistics.median(a["wall_s"] / b["wall_s"] for a, b in zip(runs[ours], runs[theirs]))
+            for ours, theirs in (("mapsqueeze compress", "G-PCC trisoup encode"),
+                                 ("mapsqueeze decompress", "G-PCC trisoup decode"))}
         results["bytes"] = {"mapsqueeze": (folder / "map.msq").stat().st_size, "G-PCC trisoup": stream.stat().st_size}
         results["identity"] = identical_bytes(source, folder)
     return results
