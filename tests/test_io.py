@@ -458,7 +458,8 @@ def test_pcd_binary_compressed_errors_say_what_is_wrong(tmp_path):
         assert str(excinfo.value) == f"{path}: {message}"
 
 
-def test_lzf_decompress_literals_references_and_overlapping_copies(lzf_compress):
+@pytest.mark.parametrize("compiled", [False, True], ids=["python", "compiled"])
+def test_lzf_decompress_literals_references_and_overlapping_copies(lzf_compress, compiled):
     cases = [
         (b"\x02abc\x20\x02", b"abcabc"),  # a 3-byte reference 3 back
         (b"\x01ab\x60\x01", b"ab" + b"ababa"),  # 5 bytes from 2 back: overlapping, the pattern repeated
@@ -468,14 +469,14 @@ def test_lzf_decompress_literals_references_and_overlapping_copies(lzf_compress)
         (b"", b""),
     ]
     for stream, expected in cases:
-        assert bytes(lzf.decompress(stream, len(expected))) == expected
+        assert bytes(lzf.decompress(stream, len(expected), compiled)) == expected
     far = bytes(range(256)) * 32  # 8,192 bytes, then 3 of them again from the farthest offset
     assert bytes(lzf.decompress(b"".join(b"\x1f" + far[i : i + 32] for i in range(0, 8192, 32)) + b"\x3f\xff",
-                                8195)) == far + far[:3]
+                                8195, compiled)) == far + far[:3]
     rng = np.random.default_rng(5)
     for data in (bytes(1000), rng.integers(0, 4, 5000, dtype=np.uint8).tobytes(),
                  rng.normal(size=3000).astype("<f4").tobytes(), b"abc" * 700 + bytes(range(256))):
-        assert bytes(lzf.decompress(lzf_compress(data), len(data))) == data
+        assert bytes(lzf.decompress(lzf_compress(data), len(data), compiled)) == data
     assert len(lzf_compress(bytes(1000))) == 14  # 1 literal, 3 references of 264 + 1 of 207: references are made
 
 
@@ -489,10 +490,24 @@ def test_lzf_decompress_literals_references_and_overlapping_copies(lzf_compress)
     (b"\x00a\xe0\x01\x00", 10, "the stream decompresses to more than the 10 bytes expected"),
     (b"\x02abc", 4, "the stream decompresses to 3 bytes, 4 expected"),
 ])
-def test_lzf_decompress_refuses_corrupt_streams_without_overrunning(stream, size, message):
+@pytest.mark.parametrize("compiled", [False, True], ids=["python", "compiled"])
+def test_lzf_decompress_refuses_corrupt_streams_without_overrunning(stream, size, message, compiled):
     with pytest.raises(lzf.LZFError) as excinfo:
-        lzf.decompress(stream, size)
+        lzf.decompress(stream, size, compiled)
     assert str(excinfo.value) == message
+
+
+def test_lzf_decompress_takes_the_compiled_kernel_for_large_blocks(lzf_compress, monkeypatch):
+    """Blocks of COMPILED_BYTES or more go to the compiled kernel (the same bytes), smaller ones stay in Python."""
+    import sys
+
+    data = np.random.default_rng(6).integers(0, 3, 4000, dtype=np.uint8).tobytes()
+    stream = lzf_compress(data)
+    monkeypatch.delitem(sys.modules, "mapsqueeze.io.lzfcompiled", raising=False)
+    monkeypatch.setattr(lzf, "COMPILED_BYTES", len(data) + 1)
+    assert bytes(lzf.decompress(stream, len(data))) == data and "mapsqueeze.io.lzfcompiled" not in sys.modules
+    monkeypatch.setattr(lzf, "COMPILED_BYTES", len(data))
+    assert bytes(lzf.decompress(stream, len(data))) == data and "mapsqueeze.io.lzfcompiled" in sys.modules
 
 
 def test_ply_without_xyz_or_vertex_element(tmp_path):
