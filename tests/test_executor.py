@@ -399,3 +399,6 @@ def test_the_scheduler_probe_passes_a_listening_port_and_leaves_other_schemes_to
     executor_module._probe_scheduler("inproc://192.168.1.1/1234/1")
     with pytest.raises(ValueError, match="port"):
         executor_module._probe_scheduler("tcp://127.0.0.1")
+    for port in (0, 65536, 99999):  # getaddrinfo would wrap 99999 onto another port
+        with pytest.raises(ValueError, match="outside 1-65535"):
+            executor_module._probe_scheduler(f"tcp://127.0.0.1:{port}")

@@ -95,6 +95,10 @@ def test_to_local_rounds_each_float64_difference_to_float32():
     clamped = to_local(points, origin, size)
     assert clamped.dtype == np.float32 and (clamped < np.float32(40.0)).all()
     np.testing.assert_array_equal(clamped, np.clip(expected, np.float32(0), np.nextafter(np.float32(40), 0)))
+    origins = origin + rng.random((5000, 3))  # an origin per point, or a (1, 3) one: numpy's broadcasting
+    np.testing.assert_array_equal(to_local(points, origins), (points - origins).astype(np.float32))
+    np.testing.assert_array_equal(to_local(points, origin[None, :], size), clamped)
+    np.testing.assert_array_equal(to_local(points[0], origin), expected[0])
 
 
 def test_grid_subsample_keeps_the_point_nearest_each_voxel_centre():

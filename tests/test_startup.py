@@ -129,3 +129,31 @@ def test_the_program_keeps_its_exit_code_and_error_line_and_waits_for_running_th
     assert waited.returncode == 0 and "thread done" in waited.stdout
     script = subprocess.run([sys.executable, "-m", "mapsqueeze", "models"], capture_output=True, text=True)
     assert script.returncode == 0 and "e1" in script.stdout
+
+
+def test_output_a_full_device_refuses_is_one_error_line_and_a_closed_stdout_is_no_error(tmp_path):
+    """`> /dev/full`: one `error:` line and exit code 2, not a traceback; started with stdout closed (`>&-`), the
+    command runs and writes its files."""
+    import os
+    from pathlib import Path
+
+    if Path("/dev/full").exists():
+        with open("/dev/full", "w") as full:
+            result = subprocess.run([sys.executable, "-m", "mapsqueeze", "models"], stdout=full, stderr=subprocess.PIPE,
+                                    text=True)
+        assert result.returncode == 2
+        assert result.stderr.splitlines() == ["error: cannot write the output (No space left on device)"]
+    result = subprocess.run([sys.executable, "-m", "mapsqueeze", "convert", str(_small_map(tmp_path)),
+                             str(tmp_path / "out.pcd")], stdin=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: os.close(1))
+    assert result.returncode == 0 and "Traceback" not in result.stderr and (tmp_path / "out.pcd").stat().st_size
+
+
+def _small_map(folder):
+    import numpy as np
+
+    from mapsqueeze.io import write_points
+
+    path = folder / "map.ply"
+    write_points(path, np.random.default_rng(0).random((200, 3)) * 10)
+    return path

@@ -13,6 +13,7 @@ interpreter's teardown (`_end_process`).
 """
 
 import atexit
+import errno
 import os
 import signal
 import sys
@@ -53,12 +54,29 @@ def _install_signal_handlers() -> dict:
     return replaced
 
 
+def _open_closed_streams() -> None:
+    """A standard stream the command was started without (`>&-`: Python's sys.stdout is None) writes to os.devnull,
+    so that the command runs and its output files are written."""
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 - the process's stream from now on
+
+
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO)
+"""Errors of a write that no retry mends: the device or quota is full, the file too large, the device failing."""
+
+
 def main() -> None:
     replaced = _install_signal_handlers()
+    _open_closed_streams()
     try:
         from mapsqueeze.cli.commands import run  # typer, rich and every command module, once the handlers are set
 
         run()
+    except OSError as exc:  # e.g. the output printed to a full device (`> /dev/full`)
+        if exc.errno not in _WRITE_ERRNOS:
+            raise
+        _fail(f"cannot write {exc.filename or 'the output'} ({exc.strerror})")
     except KeyboardInterrupt:
         _fail("interrupted", 128 + signal.SIGINT)
     except _Signalled as exc:
@@ -79,11 +97,12 @@ def entry() -> None:
 
 
 def _end_process(code) -> None:
-    """End the process with exit code `code` (as SystemExit takes it) once the command is done: flush stdout and
-    stderr, run the atexit handlers, then os._exit, skipping the interpreter's teardown (destroying every module
+    """End the process with exit code `code` (as SystemExit takes it) once the command is done: run the atexit
+    handlers, flush stdout and stderr, then os._exit, skipping the interpreter's teardown (destroying every module
     and object: 0.3 s after numba's compiled kernels are loaded, 0.1 s otherwise), which the outputs, closed by
-    now, do not need. Where a thread other than daemons is still running, or a stream cannot be flushed (a closed
-    pipe), the usual exit instead (it waits for the threads and reports the stream)."""
+    now, do not need. Output stdout cannot take (a full device) ends a run that had succeeded with one error line
+    and exit code 2; a reader that closed the pipe, silently. Where a thread other than daemons is still running,
+    the usual exit instead (it waits for the threads)."""
     if any(thread is not threading.main_thread() and not thread.daemon and thread.is_alive()
            for thread in threading.enumerate()):
         raise SystemExit(code)
@@ -94,17 +113,16 @@ def _end_process(code) -> None:
     else:  # SystemExit("message"): printed, status 1
         print(code, file=sys.stderr)
         status = 1
-    try:
-        for stream in (sys.stdout, sys.stderr):
-            if stream is not None:
-                stream.flush()
-    except (OSError, ValueError):
-        raise SystemExit(code) from None
     atexit._run_exitfuncs()
-    try:
-        for stream in (sys.stdout, sys.stderr):  # what the handlers printed
-            if stream is not None:
-                stream.flush()
-    except (OSError, ValueError):
-        pass
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError) as exc:
+            if stream is sys.stdout and status == 0 and not isinstance(exc, BrokenPipeError):
+                status = 2
+                try:
+                    print(f"error: cannot write to standard output ({getattr(exc, 'strerror', None) or exc})",
+                          file=sys.stderr, flush=True)
+                except (OSError, ValueError):
+                    pass
     os._exit(status)

@@ -66,7 +66,6 @@ def make_console(stderr: bool = False) -> Console:
     return Console(stderr=stderr, width=10_000, soft_wrap=True, no_color=True, highlight=False, emoji=False)
 
 
-
 def print_rows(rows: list[tuple[str, str]]) -> None:
     """(name, value) rows on stdout, the values aligned: a rich table on a terminal; piped or redirected, one plain
     line per row without the trailing spaces a table pads its last column with."""

@@ -185,7 +185,7 @@ Executor = SerialExecutor | ThreadExecutor | DaskExecutor
 def _probe_scheduler(address: str) -> None:
     """Open and close a TCP connection to the host and port of a Dask scheduler address (tcp://, tls://, ws://,
     wss:// or host:port), or raise OSError (refused, unknown host, no answer within SCHEDULER_PROBE_S) or ValueError
-    (no port). The Dask client retries a refused connection until its timeout (30 s); this fails in a round trip.
+    (no port, or one outside 1-65535). The Dask client retries a refused connection until its timeout (30 s); this fails in a round trip.
     The scheduler logs the connection as closed before its handshake."""
     from distributed.comm.addressing import parse_address, parse_host_port, unparse_host_port
 
@@ -193,6 +193,8 @@ def _probe_scheduler(address: str) -> None:
     if scheme not in _PROBED_SCHEMES:
         return
     host, port = parse_host_port(location)
+    if not 0 < port < 1 << 16:
+        raise ValueError(f"port {port} is outside 1-65535")
     try:
         socket.create_connection((host, port), timeout=SCHEDULER_PROBE_S).close()
     except TimeoutError:

@@ -349,7 +349,7 @@ def search_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
                          extent_m: np.ndarray, byte: int, copy_weight: float = 0.0, payload_bytes: int = 0,
                          compiled: bool = True) -> PatchChoiceSearch | None:
     """The tile's patch choices (one per embedding point) of a greedy search (`occupancy.patch_option_ious`,
-    PATCH_CHOICE_SWEEPS sweeps from the option of the tile's setting `byte`) for the highest IoU with the tile's
+    PATCH_CHOICE_SWEEPS sweeps from the option of setting `byte`) for the highest IoU with the tile's
     points, or, with a model's `copy_weight` > 0 (`ModelConfig.patch_choice_copy_weight`), for that weighed IoU and
     then PATCH_CHOICE_RATE_SWEEPS sweeps charging each bit of the choices IOU_PER_LOG_RATE / (8 payload_bytes), the
     network payload's bytes (none when 0); None when the tile's voxel box is too large for the search

@@ -122,7 +122,8 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
     """The tile's classical candidates, each with its payload and D_e, and the network's D_e, decode post-filter
     and patch-choice search for `embedding` (None: no network candidate) as the decoder sees it (coded with the
     map's latent codec): raw when the tile is sparse enough for raw coding to compete or a rate target is given,
-    the octree at each leaf of OCTREE_LEAVES_M unless the target forbids the fallback; the network's decode
+    the octree at each leaf of OCTREE_LEAVES_M unless the target forbids the fallback (without a target, none of
+    the leaves finer than the first whose payload exceeds the network's, `encode_octree_tiles`); the network's decode
     post-filter setting (none under post-filter "off") and the network's D_e: that of the filtered decode, except
     under the default patch planes without a rate target, where it is the unfiltered decode's (the filter moves D_e
     by -2 to +5 % on the real submaps; this spares a nearest-neighbour search over 2-3 times the points, and the
@@ -148,15 +149,15 @@ def _encode_tile(index: tuple[int, int, int], tile_points: np.ndarray, job: Tile
         return _candidates(classical, distortion.settle()), None, OFF, None
     leaves = OCTREE_LEAVES_M if target.fallback else ()
     octrees = encode_octree_tiles(local, tile_size, leaves, None if target.given else network_bytes)
-    for leaf, payload, centres in octrees:  # without a target, none the rule cannot pick beyond the first too large
+    for leaf, payload, centres in octrees:
         distortion.add(lambda centres=centres: octree_points(centres, extent, None),
                        lambda points, leaf=leaf: own_leaf_distances(points, tile_size, leaf, extent, job.compiled),
                        competing(payload))
         classical.append((TileCoding.octree, payload, f"octree {leaf:g} m"))
     post_filter, search = OFF, None
     if target.post_filter == "auto":
-        post_filter, network_d_e = choose_post_filter(
-            local, network_points(model, *embedding, extent, None), frame, lambda cloud: keep_inside(cloud, extent, job.compiled))
+        post_filter, network_d_e = choose_post_filter(local, network_points(model, *embedding, extent, None), frame,
+                                                      lambda cloud: keep_inside(cloud, extent, job.compiled))
         d_e = distortion.settle()
     else:
         if target.post_filter == "patch":
@@ -197,8 +198,8 @@ def _patch_choices(tile_points: np.ndarray, local: np.ndarray, frame: np.ndarray
     search = search_from(CHOICE_SEARCH_START)
     if choices_pay_clearly(search, network_bytes):
         return CHOICE_SEARCH_START, search
-    setting = choose_patch_filter(local + frame, uncropped, keep_inside(uncropped, extent, compiled), factors, frame, extent,
-                                  compiled)
+    setting = choose_patch_filter(local + frame, uncropped, keep_inside(uncropped, extent, compiled), factors, frame,
+                                  extent, compiled)
     return setting, (search if setting == CHOICE_SEARCH_START or search is None else search_from(setting))
 
 

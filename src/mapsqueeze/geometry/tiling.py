@@ -29,15 +29,15 @@ def to_local(points: np.ndarray, origin: np.ndarray, size: np.ndarray | None = N
     """
     points, origin = np.asarray(points, dtype=np.float64), np.asarray(origin, dtype=np.float64)
     local = np.empty(np.broadcast_shapes(points.shape, origin.shape), dtype=np.float32)
-    points, origin = np.broadcast_to(points, local.shape), np.broadcast_to(origin, local.shape[-1:])
+    points, origin = np.broadcast_to(points, local.shape), np.broadcast_to(origin, local.shape)
     upper = None if size is None else np.broadcast_to(
-        np.nextafter(np.asarray(size, dtype=np.float32), np.float32(0)), local.shape[-1:])
+        np.nextafter(np.asarray(size, dtype=np.float32), np.float32(0)), local.shape)
     # axis by axis on the strided columns: numpy's (N, 3) - (3,) runs a 3-long inner loop per row (2-5x slower)
     for axis in range(local.shape[-1]):
         column = local[..., axis]
-        np.subtract(points[..., axis], origin[axis], out=column, casting="unsafe")  # float64 rounded to float32
+        np.subtract(points[..., axis], origin[..., axis], out=column, casting="unsafe")  # float64 rounded to float32
         if upper is not None:
-            np.clip(column, np.float32(0), upper[axis], out=column)
+            np.clip(column, np.float32(0), upper[..., axis], out=column)
     return local
 
 
