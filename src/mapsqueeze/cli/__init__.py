@@ -62,8 +62,8 @@ def _open_closed_streams() -> None:
             setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 - the process's stream from now on
 
 
-_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO)
-"""Errors of a write that no retry mends: the device or quota is full, the file too large, the device failing."""
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""Errors only a write raises, which no retry mends: the device or the quota is full, the file too large."""
 
 
 def main() -> None:
