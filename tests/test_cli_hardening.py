@@ -333,6 +333,43 @@ def test_pcd_with_only_nan_or_infinite_coordinates_is_one_error_line(run_cli, ti
     assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.pcd"]
 
 
+def test_a_pcd_of_only_nan_and_zero_points_counts_both_in_its_error_line(run_cli, tiny_model_dir, tmp_path):
+    """Points left out by the reader (NaN) and by compress (at (0, 0, 0)) leave nothing to code: the one error line
+    names both counts, as the two lines of a run with points left do; --keep-zero-points keeps the zero ones."""
+    points = np.zeros((12, 3))
+    points[1::3] = np.nan  # 4 NaN, 8 at the origin
+    source = organised_pcd(tmp_path / "empty.pcd", points, np.ones(len(points)))
+    code, out, err = run_cli("compress", str(source), "-o", str(tmp_path / "empty.msq"), "--model",
+                             str(tiny_model_dir))
+    assert (code, out) == (2, "") and err == (
+        f"error: {source}: no points: 4 of 12 points have NaN coordinates (PCD 'no return' values) and the other 8 "
+        "lie at (0, 0, 0) (sensor 'no return' values); keep those with --keep-zero-points\n")
+    code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "kept.msq"), "--model", str(tiny_model_dir),
+                           "--keep-zero-points")
+    assert code == 0 and out.startswith("left out 4 points with NaN coordinates (PCD 'no return' values)\nwrote ")
+    assert mapsqueeze.info(tmp_path / "kept.msq").n_points == 8
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["empty.pcd", "kept.msq"]
+
+
+def test_an_integer_npy_is_refused_with_how_to_convert_it(run_cli, tiny_model_dir, tmp_path):
+    """Integer x, y, z (millimetres? centimetres? voxel indices?) have no unit to read them in: one error line
+    saying to save float metres, for compress and convert alike; the same values as floats are read as metres."""
+    centimetres = np.round(ground() * 100).astype(np.int32)
+    source = tmp_path / "cm.npy"
+    np.save(source, centimetres)
+    for args in (["compress", source, "-o", tmp_path / "cm.msq", "--model", tiny_model_dir],
+                 ["convert", source, tmp_path / "cm.ply"]):
+        code, out, err = run_cli(*map(str, args))
+        assert (code, out) == (2, "") and err.count("\n") == 1
+        assert err.startswith(f"error: {source}: .npy holds int32 integers, whose unit is unknown; x, y, z must be "
+                              "floats in metres") and "* 0.01" in err
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["cm.npy"]
+    np.save(source, centimetres * 0.01)
+    code, out, _ = run_cli("convert", str(source), str(tmp_path / "m.ply"))
+    assert code == 0 and out == f"wrote 3,000 points to {tmp_path / 'm.ply'}\n"
+    np.testing.assert_allclose(read_points(tmp_path / "m.ply"), centimetres * 0.01, atol=1e-3)
+
+
 def test_non_finite_points_beyond_the_first_chunk_are_numbered_in_the_map(run_cli, tiny_model_dir, tmp_path):
     """A map is read in chunks of DEFAULT_CHUNK_POINTS: the error names points of the map, not of the chunk."""
     points = ground(DEFAULT_CHUNK_POINTS + 40_000) + UTM

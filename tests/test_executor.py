@@ -368,14 +368,18 @@ def _http_server() -> socket.socket:
     return server
 
 
-@pytest.mark.parametrize("case", ["refused", "http server"])
+@pytest.mark.parametrize("case", ["refused", "http server", "silent server"])
 def test_an_unreachable_dask_scheduler_is_one_error_line_within_seconds(run_cli, map_points, model_dir, tmp_path,
-                                                                         case):
+                                                                         monkeypatch, case):
     """A refused connection fails in a round trip (the Dask client alone retries it for its 30 s timeout); a
-    server that answers but not as a scheduler is one line too, not a traceback."""
+    server that answers but not as a scheduler is one line too, not a traceback; so is one that accepts connections
+    and never answers (a listening socket nobody reads: the kernel accepts for it), after SCHEDULER_TIMEOUT_S
+    (here 1 s) instead of never (the Dask client waits for the handshake without a time limit)."""
     pytest.importorskip("distributed")
+    monkeypatch.setattr(executor_module, "SCHEDULER_TIMEOUT_S", 1)
     write_points(tmp_path / "map.ply", map_points)
-    server = _http_server() if case == "http server" else None
+    server = {"http server": _http_server, "silent server": lambda: socket.create_server(("127.0.0.1", 0)),
+              "refused": lambda: None}[case]()
     address = f"tcp://127.0.0.1:{server.getsockname()[1] if server else _closed_port()}"
     started = time.monotonic()
     try:
@@ -385,9 +389,10 @@ def test_an_unreachable_dask_scheduler_is_one_error_line_within_seconds(run_cli,
         if server:
             server.close()
     elapsed = time.monotonic() - started
-    reason = "Connection refused" if case == "refused" else "the server there does not answer as a Dask scheduler"
+    reason = {"refused": "Connection refused", "http server": "the server there does not answer as a Dask scheduler",
+              "silent server": "the server there accepts connections but sends no Dask handshake within 1 s"}[case]
     assert (code, out) == (2, "") and err.startswith(f"error: cannot reach the Dask scheduler at {address!r}: {reason}")
-    assert err.count("\n") == 1 and elapsed < 15.0 and not (tmp_path / "map.msq").exists()
+    assert err.count("\n") == 1 and elapsed < 15.0 and sorted(path.name for path in tmp_path.iterdir()) == ["map.ply"]
 
 
 def test_the_scheduler_probe_passes_a_listening_port_and_leaves_other_schemes_to_dask():

@@ -124,6 +124,22 @@ def test_utm_coordinates_keep_precision(tmp_path, fmt):
     assert abs(restored[0, 0] - 500000.123) <= LAS_ERROR_M
 
 
+@pytest.mark.parametrize("dtype", ["<f4", ">f4", "<f8", "<f2", "<i2", "<u1", ">i4", "<u8"])
+def test_npy_reads_floats_as_metres_and_refuses_integers(tmp_path, dtype):
+    """A float .npy is read as metres whatever its width or byte order; an integer one (unit unknown) is refused."""
+    table = np.array([[1.5, 2.0, 3.25, 7.0], [4.0, 5.5, 6.0, 8.0]], dtype=dtype)
+    np.save(tmp_path / "a.npy", table)
+    if np.dtype(dtype).kind == "f":
+        cloud = read_point_cloud(tmp_path / "a.npy")
+        assert cloud.points.dtype == np.float64
+        np.testing.assert_array_equal(cloud.points, table[:, :3].astype(np.float64))
+        np.testing.assert_array_equal(cloud.attributes["column3"], table[:, 3])
+        return
+    with pytest.raises(PointCloudFormatError, match=rf"a.npy: .npy holds {np.dtype(dtype)} integers, whose unit is "
+                                                    r"unknown; x, y, z must be floats in metres"):
+        read_point_cloud(tmp_path / "a.npy")
+
+
 def test_ply_uses_float64_only_when_float32_would_lose_a_millimetre(tmp_path):
     write_points(tmp_path / "local.ply", local_cloud())
     write_points(tmp_path / "utm.ply", local_cloud() + UTM_OFFSET_M)
@@ -359,6 +375,7 @@ def make_bad_file(tmp_path: Path, case: str) -> Path:
         "inf in npy": ("inf.npy", None),
         "npy with two columns": ("two.npy", None),
         "npy of objects": ("objects.npy", None),
+        "npy of integers": ("ints.npy", None),
         "absurd coordinates in npy": ("far.npy", None),
         "ply garbage": ("garbage.ply", b"not a ply file at all\n"),
         "pcd garbage": ("garbage.pcd", bytes(range(128, 256)) + b"\n"),
@@ -389,6 +406,8 @@ def make_bad_file(tmp_path: Path, case: str) -> Path:
         np.save(path, np.ones((5, 2)))
     elif case == "npy of objects":
         np.save(path, np.array([[1, "a", None]], dtype=object), allow_pickle=True)
+    elif case == "npy of integers":
+        np.save(path, np.array([[120, 45, 3], [121, 45, 3]], dtype=np.int32))
     elif case == "absurd coordinates in npy":
         np.save(path, np.array([[1.0, 2.0, 3.0], [2e7, 0.0, 0.0]]))
     else:
@@ -407,6 +426,7 @@ BAD_INPUTS = {
     "inf in npy": InvalidPointCloudError,
     "npy with two columns": PointCloudFormatError,
     "npy of objects": PointCloudFormatError,
+    "npy of integers": PointCloudFormatError,
     "absurd coordinates in npy": InvalidPointCloudError,
     "ply garbage": PointCloudFormatError,
     "pcd garbage": PointCloudFormatError,

@@ -333,7 +333,13 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
             if len(chunk):
                 yield chunk
         if dropped[0] and not kept:
-            raise InvalidPointCloudError(f"{input_path}: all {dropped[0]:,} points lie at (0, 0, 0) (sensor "
+            zero, nan = dropped
+            if nan:  # a PCD's NaN points are left out by the reader: count them with the zero ones
+                raise InvalidPointCloudError(
+                    f"{input_path}: no points: {nan:,} of {zero + nan:,} points {'has' if nan == 1 else 'have'} NaN "
+                    f"coordinates (PCD 'no return' values) and the other {zero:,} {'lies' if zero == 1 else 'lie'} at "
+                    "(0, 0, 0) (sensor 'no return' values); keep those with --keep-zero-points")
+            raise InvalidPointCloudError(f"{input_path}: all {zero:,} points lie at (0, 0, 0) (sensor "
                                          "'no return' values); keep them with --keep-zero-points")
 
     data = compress_chunks(chunks, model, precision, progress=progress, refine_steps=refine_steps,

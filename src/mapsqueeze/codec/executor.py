@@ -44,7 +44,8 @@ connection or an unknown host fails at once, a host that does not answer after t
 scheduler accepts within a round trip (and two lost SYNs, resent after 1 and 3 s), however busy the scheduler."""
 
 SCHEDULER_TIMEOUT_S = 30
-"""Seconds the Dask client then has for its handshake with the scheduler, which a busy scheduler may answer late."""
+"""Seconds a Dask connection to the scheduler then has for its handshake, which a busy scheduler may answer late
+(`_check_handshake`), and the Dask client for its own."""
 
 _PROBED_SCHEMES = ("tcp", "tls", "ws", "wss")
 """Address schemes over TCP (host:port) that `_probe_scheduler` checks; others (e.g. inproc, ucx) go to the client."""
@@ -158,6 +159,7 @@ class DaskExecutor:
         else:
             try:
                 _probe_scheduler(address)
+                _check_handshake(address)
                 self._client = Client(address, timeout=f"{SCHEDULER_TIMEOUT_S}s")
             except (OSError, ValueError) as exc:
                 raise MapsqueezeError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
@@ -201,6 +203,35 @@ def _probe_scheduler(address: str) -> None:
         raise OSError(f"no answer from {unparse_host_port(host, port)} within {SCHEDULER_PROBE_S:g} s") from None
     except OSError as exc:
         raise OSError(f"{exc.strerror or exc} ({unparse_host_port(host, port)})") from None
+
+
+def _check_handshake(address: str) -> None:
+    """Open a Dask connection to the scheduler at a tcp://, tls://, ws://, wss:// or host:port address, handshake
+    included, and close it, or raise OSError (no handshake within SCHEDULER_TIMEOUT_S). The Dask client waits for
+    the handshake without a time limit (`distributed.comm.connect`), so a server that accepts connections and never
+    answers (e.g. a port forward to a stopped scheduler) would hang it. The connection runs on an event loop of its
+    own, in a thread of its own (this thread may be running a loop, as in Jupyter)."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed.comm import connect
+    from distributed.comm.addressing import parse_address
+    from distributed.security import Security
+
+    if parse_address(address)[0] not in _PROBED_SCHEMES:
+        return
+
+    async def handshake() -> None:
+        comm = await asyncio.wait_for(connect(address, timeout=SCHEDULER_TIMEOUT_S,
+                                              **Security().get_connection_args("client")), SCHEDULER_TIMEOUT_S)
+        await comm.close()
+
+    with ThreadPoolExecutor(1, thread_name_prefix="mapsqueeze-dask-handshake") as thread:
+        try:
+            thread.submit(asyncio.run, handshake()).result()
+        except asyncio.TimeoutError:
+            raise OSError("the server there accepts connections but sends no Dask handshake within "
+                          f"{SCHEDULER_TIMEOUT_S:g} s") from None
 
 
 def open_executor(workers: int | None, dask_scheduler: str | None, n_jobs: int) -> Executor:

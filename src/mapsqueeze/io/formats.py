@@ -9,7 +9,8 @@ Format names (`format=` overrides the extension):
              `pcd-ascii` writes ascii; points with a NaN coordinate (missing returns of organised clouds) are left
              out when read (io.pcd)
 - `las`, `laz` LAS 1.2-1.4 with every standard field, extra bytes and the header's CRS records (io.las)
-- `npy`      NumPy array N x 3, or N x (3 + k) with k attribute columns, extension .npy
+- `npy`      NumPy float array N x 3 (metres), or N x (3 + k) with k attribute columns, extension .npy; integer
+             arrays are refused (their unit is unknown)
 
 Precision: x, y, z are float64 in memory. PLY and PCD store them as float32 when that errs by at most
 FLOAT32_MAX_ERROR_M (1 mm) and as float64 otherwise (e.g. UTM coordinates). The float32-only .bin formats refuse

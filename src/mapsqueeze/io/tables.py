@@ -5,7 +5,9 @@
   `../labels/NAME.label` when the scan lies in a `velodyne` folder, as attributes `label` and `instance` (uint16);
   writing a cloud with `label` writes `NAME.label` beside the scan.
 - nuScenes .pcd.bin: float32 N x 5 (x, y, z, intensity, ring).
-- .npy: N x 3, or N x (3 + k): columns 3.. are attributes `column3`, `column4`, ... (names are not stored).
+- .npy: floating-point N x 3 (x, y, z in metres), or N x (3 + k): columns 3.. are attributes `column3`, `column4`,
+  ... (names are not stored). An integer array is refused: its unit (millimetres, centimetres, voxel indices) cannot
+  be told from the file.
 Binary tables are memory-mapped: chunked reading holds one chunk.
 """
 
@@ -120,7 +122,7 @@ def write_nuscenes(path: Path, chunks: ChunkSource, stats: CloudStats) -> tuple[
 
 
 def _npy_table(path: Path, mmap_mode: str | None) -> np.ndarray:
-    """A numeric N x (>= 3) .npy array (memory-mapped with mmap_mode="r"), or raise."""
+    """A floating-point N x (>= 3) .npy array (memory-mapped with mmap_mode="r"), or raise."""
     try:
         table = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
     except (ValueError, EOFError) as exc:  # numpy's advice for object arrays (allow pickles) would run their code
@@ -128,6 +130,10 @@ def _npy_table(path: Path, mmap_mode: str | None) -> np.ndarray:
         raise PointCloudFormatError(f"{path}: corrupt or non-numeric .npy file ({reason})") from None
     if not isinstance(table, np.ndarray) or table.dtype.kind not in "iuf":
         raise PointCloudFormatError(f"{path}: .npy holds {getattr(table, 'dtype', type(table))}, expected numbers")
+    if table.dtype.kind != "f":  # millimetres, centimetres or voxel indices: no unit to guess
+        raise PointCloudFormatError(
+            f"{path}: .npy holds {table.dtype} integers, whose unit is unknown; x, y, z must be floats in metres: "
+            "save the array scaled to metres (e.g. centimetres: np.save(path, table * 0.01))")
     if table.ndim != 2 or table.shape[1] < 3:
         raise PointCloudFormatError(f"{path}: .npy array has shape {table.shape}, expected N x 3 or N x (>3)")
     return table
