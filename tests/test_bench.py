@@ -10,9 +10,11 @@ from typer.testing import CliRunner
 
 import mapsqueeze
 from mapsqueeze.benchmark import Row, run_benchmark
-from mapsqueeze.cli.commands import app
+from mapsqueeze.cli.commands import load_commands
 from mapsqueeze.io import write_points
 from mapsqueeze.model import ModelConfig, build_model, load_model, save_model, shipped_models
+
+app = load_commands()  # every command
 
 
 @pytest.mark.slow

@@ -738,10 +738,10 @@ def test_help_shows_every_option_whole_in_80_columns(run_cli, monkeypatch):
     width, not at the docstring's line breaks."""
     import typer.main
 
-    from mapsqueeze.cli.commands import app
+    from mapsqueeze.cli.commands import load_commands
 
     monkeypatch.setenv("COLUMNS", "80")
-    commands = typer.main.get_command(app).commands
+    commands = typer.main.get_command(load_commands()).commands
     assert {"compress", "decompress", "convert", "eval", "simulate"} <= set(commands)
     for name, command in commands.items():
         code, out, _ = run_cli(name, "--help")
@@ -752,6 +752,19 @@ def test_help_shows_every_option_whole_in_80_columns(run_cli, monkeypatch):
     _, out, _ = run_cli("convert", "--help")
     assert "keeping every attribute and the LAS header's metadata\n  the output format can hold;" in out
 
+
+
+def test_printed_file_names_keep_their_brackets(run_cli, map_file, tiny_model_dir, tmp_path):
+    """File names are printed as they are: rich's markup read '[bold]' in one as a style (left out of the line) and
+    '[/b]' as a closing tag it refused with a traceback after the file was written."""
+    (tmp_path / "a[").mkdir()
+    msq, ply, las = tmp_path / "a[" / "b].msq", tmp_path / "[bold]back.ply", tmp_path / "a[" / "[red]c].las"
+    code, out, err = run_cli("compress", str(map_file), "-o", str(msq), "--model", str(tiny_model_dir))
+    assert code == 0 and out.startswith(f"wrote {msq}: ") and "[/b]" in out, err
+    code, out, err = run_cli("decompress", str(msq), "-o", str(ply), "--model", str(tiny_model_dir))
+    assert code == 0 and out.startswith("wrote ") and out.endswith(f" points to {ply}\n"), err
+    code, out, err = run_cli("convert", str(ply), str(las))
+    assert code == 0 and out.endswith(f" points to {las}\n"), err
 
 
 def test_a_count_of_one_is_singular(run_cli, tiny_model_dir, tmp_path):

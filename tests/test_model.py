@@ -408,9 +408,9 @@ def test_reference_end_to_end_d_e_matches_golden(reference_dir, kitti_submap, ra
 def test_import_depoco_cli(reference_dir, tmp_path):
     from typer.testing import CliRunner
 
-    from mapsqueeze.cli.commands import app
+    from mapsqueeze.cli.commands import load_commands
 
-    result = CliRunner().invoke(app, ["import-depoco", str(reference_dir / "e0"), "-o", str(tmp_path / "e0")])
+    result = CliRunner().invoke(load_commands(), ["import-depoco", str(reference_dir / "e0"), "-o", str(tmp_path / "e0")])
     assert result.exit_code == 0, result.output
     model = load_model(tmp_path / "e0")
     assert model.config.subsampling_dist == 3.0 and model.config.upsampling_factors == (6, 6, 6, 6)

@@ -1,6 +1,7 @@
 """Start-up and end of the command line: loading it imports neither torch nor scipy nor trimesh (~0.5 CPU-s instead
-of ~1.5; `mapsqueeze --help` and `mapsqueeze info` stay under a CPU-second); the program ends without the
-interpreter's teardown once its command is done (`cli.entry`)."""
+of ~1.5; `mapsqueeze --help` and `mapsqueeze info` stay under a CPU-second), a command loads only its own module,
+and neither typer's pydantic coercion nor rich where its output is piped; the program ends without the interpreter's
+teardown once its command is done (`cli.entry`)."""
 
 import subprocess
 import sys
@@ -9,9 +10,57 @@ HEAVY = ("torch", "scipy", "trimesh", "numba", "matplotlib")
 
 
 def test_loading_the_command_line_imports_no_heavy_library():
-    probe = "import sys, mapsqueeze.cli.commands; print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))"
+    probe = ("import sys\nfrom mapsqueeze.cli.commands import load_commands\nload_commands()\n"
+             "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))")
     loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split()
-    assert not set(HEAVY) & set(loaded)
+    assert "mapsqueeze" in loaded and not set(HEAVY) & set(loaded)
+
+
+def test_every_command_is_loaded_by_its_name_alone():
+    """COMMAND_MODULES names the module registering each command, and every command is in it (a missing one would
+    only be found through the full load of a misspelt name)."""
+    probe = ("import sys, typer.main\nfrom mapsqueeze.cli.commands import COMMAND_MODULES, load_commands\n"
+             "for name, module in COMMAND_MODULES.items():\n"
+             "    commands = typer.main.get_command(load_commands([name, '--help'])).commands\n"
+             "    assert commands[name].callback.__module__ == f'mapsqueeze.cli.{module}', name\n"
+             "every = typer.main.get_command(load_commands()).commands\n"
+             "print(' '.join(sorted(every)), '|', ' '.join(sorted(COMMAND_MODULES)))")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    every, named = result.stdout.split("|")
+    assert every.split() == named.split() and "compress" in named.split()
+
+
+_PIPED_COMPRESS_PROBE = """
+import sys
+import numpy as np
+from mapsqueeze.cli import main
+from mapsqueeze.io import write_points
+rng = np.random.default_rng(0)
+write_points(sys.argv[1], np.c_[rng.random((3000, 2)) * 30, rng.normal(1, 0.05, 3000)])
+sys.argv = ["mapsqueeze", "compress", sys.argv[1], "-o", sys.argv[2], "--model", "e0", "--workers", "1"]
+try:
+    main()
+except SystemExit as exit:
+    assert not exit.code, exit.code
+print(" ".join(sorted(sys.modules)))
+"""
+
+
+def test_a_piped_compress_loads_neither_pydantic_nor_rich_nor_other_commands(tmp_path):
+    """`mapsqueeze compress` with its output piped (as a script runs it): only the compress command's modules, no
+    pydantic (typer >= 0.29 coerces every parameter through it: ~0.1 CPU-s), no rich (~0.05 CPU-s: its lines are
+    plain text), and none of the simulator, the viewer or the data tools' modules the other commands use."""
+    result = subprocess.run([sys.executable, "-c", _PIPED_COMPRESS_PROBE, str(tmp_path / "map.ply"),
+                             str(tmp_path / "map.msq")], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    *printed, loaded = result.stdout.splitlines()
+    assert printed[-1].startswith(f"wrote {tmp_path / 'map.msq'}: 3,000 points in 1 tile")
+    loaded = set(loaded.split())
+    assert "mapsqueeze.cli.codec_cmds" in loaded and (tmp_path / "map.msq").stat().st_size
+    assert not {name for name in loaded if name.split(".")[0] in ("pydantic", "rich")}
+    assert not {"mapsqueeze.cli.sim_cmds", "mapsqueeze.cli.view_cmds", "mapsqueeze.cli.data_cmds",
+                "mapsqueeze.cli.eval_cmds", "mapsqueeze.data", "mapsqueeze.view"} & loaded
 
 
 def test_info_imports_no_heavy_library(tmp_path):

@@ -1,6 +1,6 @@
 """Command-line entry point: `mapsqueeze COMMAND ...`.
 
-`main` sets its SIGINT and SIGTERM handlers first and only then loads typer and the command modules
+`main` sets its SIGINT and SIGTERM handlers first and only then loads typer and the module of the command run
 (`cli.commands`, where each module adds its commands to the single typer app in `cli.app`; every command is a thin
 call into the library). Library errors (MapsqueezeError) and wrong flags become one `error: ...` line and exit
 code 2. Ctrl-C (SIGINT) and SIGTERM, from the moment `main` starts (while the command line still loads, too), unwind
@@ -70,7 +70,7 @@ def main() -> None:
     replaced = _install_signal_handlers()
     _open_closed_streams()
     try:
-        from mapsqueeze.cli.commands import run  # typer, rich and every command module, once the handlers are set
+        from mapsqueeze.cli.commands import run  # typer and the command's module, once the handlers are set
 
         run()
     except OSError as exc:  # e.g. the output printed to a full device (`> /dev/full`)

@@ -1,13 +1,18 @@
 """The one typer app; command modules register themselves on it (see cli/__init__.py)."""
 
+from __future__ import annotations
+
 import sys
+from typing import TYPE_CHECKING
 
 import typer
-from rich.console import Console
 
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import SUPPORTED_FORMATS
 from mapsqueeze.version import __version__
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 FORMAT_HELP = f"one of {', '.join(SUPPORTED_FORMATS)} (default: from the extension)"
 
@@ -59,11 +64,24 @@ def nan_points_line(count: int, source=None) -> str:
 
 
 def make_console(stderr: bool = False) -> Console:
-    """The console commands print through: rich on a terminal; piped or redirected, plain lines that are never
-    wrapped or coloured (rich would wrap at 80 columns and squeeze wide tables)."""
+    """The console commands print rich's tables, bars and styled text through: rich on a terminal; piped or
+    redirected, plain lines that are never wrapped or coloured (rich would wrap at 80 columns and squeeze wide
+    tables)."""
+    from rich.console import Console
+
     if (sys.stderr if stderr else sys.stdout).isatty():
         return Console(stderr=stderr)
     return Console(stderr=stderr, width=10_000, soft_wrap=True, no_color=True, highlight=False, emoji=False)
+
+
+def print_line(text: str, stderr: bool = False) -> None:
+    """One line of plain text on stdout (or stderr), printed as it is (a file name's brackets are no rich markup):
+    through rich on a terminal; piped or redirected, without loading rich (~0.05 CPU-s)."""
+    stream = sys.stderr if stderr else sys.stdout
+    if stream.isatty():
+        make_console(stderr).print(text, markup=False)
+    else:
+        print(text, file=stream)
 
 
 def print_rows(rows: list[tuple[str, str]]) -> None:

@@ -1,14 +1,16 @@
 """`mapsqueeze compress`, `decompress`, `info`: whole maps to and from .msq containers."""
 
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from mapsqueeze import api
-from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, nan_points_line, parse_numbers, print_rows
+from mapsqueeze.cli.app import (
+    FORMAT_HELP, app, counted, make_console, nan_points_line, parse_numbers, print_line, print_rows,
+)
 from mapsqueeze.cli.io_cmds import warn_dropped
 from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
@@ -21,10 +23,15 @@ MSQ_SUFFIX = ".msq"
 
 @contextmanager
 def _tile_progress(description: str) -> Iterator:
-    """A progress(done, total) callback drawing a rich bar on stderr for maps of more than one tile."""
-    console = make_console(stderr=True)
+    """A progress(done, total) callback drawing a rich bar on stderr, when it is a terminal, for maps of more than one
+    tile (rich is not loaded otherwise)."""
+    if not sys.stderr.isatty():
+        yield lambda done, total: None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
     bar = Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TextColumn("tiles"),
-                   TimeRemainingColumn(), console=console, transient=True, disable=not console.is_terminal)
+                   TimeRemainingColumn(), console=make_console(stderr=True), transient=True)
     task = None
 
     def update(done: int, total: int) -> None:
@@ -107,14 +114,13 @@ def compress_command(
                                     progress=progress,
                                     keep_zero_points=keep_zero_points, format=in_format,
                                     attribute_options=options, workers=workers, dask_scheduler=dask_scheduler)
-    console = make_console()
     if summary.nan_points_dropped:
-        console.print(nan_points_line(summary.nan_points_dropped))
+        print_line(nan_points_line(summary.nan_points_dropped))
     if summary.zero_points_dropped:
-        console.print(f"left out {counted(summary.zero_points_dropped, 'point')} at exactly (0, 0, 0) (sensor 'no "
+        print_line(f"left out {counted(summary.zero_points_dropped, 'point')} at exactly (0, 0, 0) (sensor 'no "
                       "return' values; --keep-zero-points keeps them)")
     modes = ", ".join(f"{count} {mode}" for mode, count in summary.tile_modes.items())
-    console.print(f"wrote {output}: {counted(summary.n_points, 'point')} in {counted(summary.n_tiles, 'tile')} "
+    print_line(f"wrote {output}: {counted(summary.n_points, 'point')} in {counted(summary.n_tiles, 'tile')} "
                   f"({modes}), "
                   f"{summary.file_bytes:,} bytes, {summary.bits_per_point:.4f} bits per point"
                   + (f"; attributes {', '.join(summary.attributes)}: {summary.attribute_bytes:,} bytes"
@@ -152,7 +158,7 @@ def decompress_command(
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress, max_tile_points=max_tile_points, format=out_format,
                                     workers=workers, dask_scheduler=dask_scheduler, attributes=not no_attributes)
-    make_console().print(f"wrote {counted(count, 'point')} to {output}")
+    print_line(f"wrote {counted(count, 'point')} to {output}")
 
 
 @app.command("info")

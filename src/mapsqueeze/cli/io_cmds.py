@@ -4,7 +4,7 @@ from pathlib import Path
 
 import typer
 
-from mapsqueeze.cli.app import FORMAT_HELP, app, counted, make_console, nan_points_line
+from mapsqueeze.cli.app import FORMAT_HELP, app, counted, nan_points_line, print_line
 from mapsqueeze.io import check_output_path, dropped_fields, format_name, read_point_cloud, write_points
 
 
@@ -23,15 +23,14 @@ def convert(
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
     warn_dropped(cloud.attributes, output_path, out_format)
-    console = make_console()
     if cloud.nan_points_dropped:
-        console.print(nan_points_line(cloud.nan_points_dropped))
-    console.print(f"wrote {counted(len(cloud), 'point')} to {output_path}")
+        print_line(nan_points_line(cloud.nan_points_dropped))
+    print_line(f"wrote {counted(len(cloud), 'point')} to {output_path}")
 
 
 def warn_dropped(names, output_path: Path, out_format: str | None = None) -> None:
     """One warning line on stderr naming the attributes the output format cannot hold, if any."""
     dropped = dropped_fields(names, output_path, out_format)
     if dropped:
-        make_console(stderr=True).print(f"warning: {output_path.name} cannot hold attribute(s) "
-                                        f"{', '.join(dropped)}; not written", highlight=False, soft_wrap=True)
+        print_line(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; not written",
+                   stderr=True)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import typer
 
-from mapsqueeze.cli.app import app, make_console, nan_points_line
+from mapsqueeze.cli.app import app, nan_points_line, print_line
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.view import DEFAULT_MAX_POINTS
 
@@ -35,9 +35,8 @@ def view_command(
     view = ViewInput(msq.name, msq, original=None if original is None else load_cloud(original), model=model)
     scene = write_view(view, output, max_points)
     drawn = ", ".join(f"{c['name']} {c['drawn']:,} of {c['total']:,}" for c in scene["clouds"])
-    console = make_console()
     if view.original is not None and view.original.nan_points_dropped:
-        console.print(nan_points_line(view.original.nan_points_dropped, original))
-    console.print(f"wrote {output} ({output.stat().st_size:,} bytes; points drawn: {drawn})")
+        print_line(nan_points_line(view.original.nan_points_dropped, original))
+    print_line(f"wrote {output} ({output.stat().st_size:,} bytes; points drawn: {drawn})")
     if open_page:
         webbrowser.open(output.resolve().as_uri())
