@@ -527,6 +527,33 @@ def test_rate_targets_are_met(map_points, model):
         mapsqueeze.compress(map_points, model=model, max_error=0.1, bpp=1.0)
 
 
+@pytest.mark.parametrize("target", [{"fallback": False}, {"max_error": 0.1}, {"bpp": 1.0}])
+def test_compress_holds_per_tile_only_what_the_mode_decision_needs(map_points, model, monkeypatch, target):
+    """Without a rate budget each tile's choice is made as its candidates come and only it is kept (the embedding
+    and the patch choices, uint8, only for a network tile); a budget weighs every tile's candidates at the end, so
+    it keeps them all."""
+    from mapsqueeze.codec import compress as compress_module
+
+    held, assemble = [], compress_module._assemble
+
+    def spy(encoded, *args):
+        held.append([(list(tile.candidates), tile.choice, tile.points, tile.patch_choices) for tile in encoded])
+        return assemble(encoded, *args)
+
+    monkeypatch.setattr(compress_module, "_assemble", spy)
+    mapsqueeze.compress(map_points, model=model, **target)
+    tiles = held[0]
+    if "bpp" in target:
+        assert min(len(candidates) for candidates, *_ in tiles if len(candidates) > 1) == 7
+        return
+    assert all(candidates == [choice] for candidates, choice, *_ in tiles)
+    network = [choice.coding is TileCoding.network for _, choice, *_ in tiles]
+    assert any(network) != ("max_error" in target) and not all(network)  # no network tile under 10 cm here
+    for is_network, (_, _, points, search) in zip(network, tiles):
+        assert (points is not None) == is_network and (search is not None) == is_network
+        assert search is None or search.choices.dtype == np.uint8
+
+
 def test_default_decode_is_each_tiles_native_count(network_only, model):
     reader, stream = open_container(network_only)
     with stream:

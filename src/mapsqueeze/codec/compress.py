@@ -341,9 +341,8 @@ def _compress_tiles(
                          tile_progress, compiled)
         streams = AttributeCoder(tile_source, model, schema, workers, dask_scheduler)
         weights = [tile.n_points for tile in encoded]
-        if target.bpp is None:
-            choices = [choose_for_error(tile.candidates, target.max_error_m) if target.max_error_m is not None
-                       else choose(tile.candidates, _network_bytes(tile)) for tile in encoded]
+        if target.bpp is None:  # each tile's choice was made as its candidates came (`_tile_candidates`)
+            choices = [tile.choice for tile in encoded]
             data = _assemble(encoded, choices, model, latent, origin, n_points, streams)
         else:  # the payload budget is what the file may hold less the header and table of the last attempt
             target_bytes = target.bpp * n_points / 8
@@ -409,11 +408,6 @@ def _assemble(encoded: list[EncodedTile], choices: list[Candidate], model, laten
     return serialise_container(header, records, section)
 
 
-def _network_bytes(tile: EncodedTile) -> int | None:
-    network = [c for c in tile.candidates if c.coding is TileCoding.network]
-    return network[0].n_bytes if network else None
-
-
 def _embed_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,
                  origin: np.ndarray, model, refine_steps: int, workers: int | None,
                  dask_scheduler: str | None, compiled: bool = True) -> list[EncodedTile]:
@@ -424,13 +418,14 @@ def _embed_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, d
 
 
 def _run(function, job: TileJob, items: Iterable, n_jobs: int, workers: int | None, dask_scheduler: str | None,
-         progress: ProgressCallback) -> list:
-    """function(job, item) of every item, in order, on the executor `workers` / `dask_scheduler` open."""
+         progress: ProgressCallback, keep: Callable[[int, object], object] | None = None) -> list:
+    """function(job, item) of every item, in order, on the executor `workers` / `dask_scheduler` open; keep:
+    (position, result) -> what is kept of each result, applied as it comes (default: all of it)."""
     results = []
     executor = open_executor(workers, dask_scheduler, n_jobs)
     try:
         for done, result in enumerate(executor.map(function, job, items), start=1):
-            results.append(result)
+            results.append(result if keep is None else keep(done - 1, result))
             progress(done, n_jobs)
     finally:
         executor.close(abort=sys.exc_info()[0] is not None)
@@ -450,7 +445,10 @@ def _tile_candidates(encoded: list[EncodedTile], tile_points: Iterable[tuple[tup
                      origin: np.ndarray, model, latent: LatentCodec, target: RateTarget, workers: int | None,
                      dask_scheduler: str | None, progress: ProgressCallback, compiled: bool = True) -> None:
     """Every tile's candidate codings (`candidates_job`), set in `encoded` in place: the network's payload is
-    coded here with the map-wide `latent` codec, the workers decode it as the decoder will."""
+    coded here with the map-wide `latent` codec, the workers decode it as the decoder will. Without a rate budget
+    the mode decision depends on the tile's own candidates alone (`choose`, `choose_for_error`): each tile's choice
+    is made as its candidates come, and only the chosen candidate is kept (the embedding and patch choices only for
+    a network tile), so that what compress holds per tile stays small."""
     state = ByteWriter()  # the codec as the header stores it (its entropy models do not pickle)
     latent.write(state)
     job = TileJob(model, origin, np.asarray(model.config.tile_size, dtype=np.float64), target=target,
@@ -458,11 +456,22 @@ def _tile_candidates(encoded: list[EncodedTile], tile_points: Iterable[tuple[tup
     payloads = [None if tile.points is None else latent.encode(tile.points, tile.features) for tile in encoded]
     items = ((tile.index, tile.n_embedding, payload, index, points)
              for tile, payload, (index, points, _) in zip(encoded, payloads, tile_points))
-    results = _run(candidates_job, job, items, len(encoded), workers, dask_scheduler, progress)
-    for tile, payload, (candidates, network_d_e, post_filter, search) in zip(encoded, payloads, results):
+
+    def keep(position: int, result: tuple) -> None:
+        tile, payload = encoded[position], payloads[position]
+        candidates, network_d_e, post_filter, search = result
+        payloads[position] = None
         if payload is not None:
             candidates.append(Candidate(TileCoding.network, payload, len(payload), network_d_e, "network"))
         tile.candidates, tile.post_filter, tile.patch_choices = candidates, post_filter, search
+        if target.bpp is None:
+            tile.choice = (choose_for_error(candidates, target.max_error_m) if target.max_error_m is not None
+                           else choose(candidates, None if payload is None else len(payload)))
+            tile.candidates = [tile.choice]
+            if tile.choice.coding is not TileCoding.network:
+                tile.points = tile.features = tile.patch_choices = None
+
+    _run(candidates_job, job, items, len(encoded), workers, dask_scheduler, progress, keep)
 
 
 def _recode_chosen(encoded: list[EncodedTile], latent: LatentCodec) -> LatentCodec:

@@ -65,7 +65,7 @@ def check_workers(workers: int) -> int:
 
 class SerialExecutor:
     """Runs each job in this process, one after the other; this process keeps freed memory for the next tile from
-    then on (`_keep_freed_memory`), as with a pool of threads."""
+    then on (`_keep_freed_memory`), as with a pool of threads, and returns it when the jobs are done."""
 
     workers = 1
 
@@ -76,7 +76,7 @@ class SerialExecutor:
         return (function(context, item) for item in items)
 
     def close(self, abort: bool = False) -> None:
-        pass
+        _return_freed_memory()
 
 
 class ThreadExecutor:
@@ -88,9 +88,10 @@ class ThreadExecutor:
     many other pools of the process open and close meanwhile), so each job's bytes are the serial run's; the
     compiled kernels (`kernel_threads`) and each pool thread's OpenMP k-d tree searches (`_pool_thread_start`) run on
     the workers' share of the cores. This process keeps freed memory for the next tile from then on
-    (`_keep_freed_memory`). Once every job is handed to the pool, a thread that finds no job left helps the running
-    ones with the independent parts they offer (`geometry.threads.run_shared`: the decoder's groups of embedding
-    points, the patch planes' blocks), so the last tiles do not run on one core while the others idle."""
+    (`_keep_freed_memory`) and returns it when the pool closes. Once every job is handed to the pool, a thread that
+    finds no job left helps the running ones with the independent parts they offer (`geometry.threads.run_shared`:
+    the decoder's groups of embedding points, the patch planes' blocks), so the last tiles do not run on one core
+    while the others idle."""
 
     def __init__(self, workers: int):
         from concurrent.futures import ThreadPoolExecutor
@@ -133,6 +134,7 @@ class ThreadExecutor:
         finally:
             self._kernels.__exit__(None, None, None)
             self._blas.__exit__(None, None, None)
+            _return_freed_memory()
 
 
 def _help(finished: Callable[[], bool]) -> None:
@@ -281,16 +283,34 @@ def _keep_freed_memory() -> None:
     """Let glibc's malloc reuse a tile's freed arrays for the next tile (WORKER_MMAP_THRESHOLD_BYTES,
     WORKER_TRIM_THRESHOLD_BYTES): with its defaults, a pool maps and zero-fills every tile's arrays afresh (~20,000
     page faults a tile, ~2 of 6 CPU-s decoding 25 tiles in worker processes), and so does one thread decoding the
-    tiles in turn (~171,000 page faults for those 25 tiles, BENCHMARKS.md "Throughput"). Nothing changes where the C
-    library has no mallopt."""
+    tiles in turn (~171,000 page faults for those 25 tiles, BENCHMARKS.md "Throughput"). What earlier work freed
+    and malloc kept (the previous run's tiles, compress's latent fit) is returned first (`_return_freed_memory`).
+    Nothing changes where the C library has no mallopt."""
+    _return_freed_memory()
+    mallopt = _libc_function("mallopt")
+    if mallopt is not None:
+        mallopt(_M_MMAP_THRESHOLD, WORKER_MMAP_THRESHOLD_BYTES)
+        mallopt(_M_TRIM_THRESHOLD, WORKER_TRIM_THRESHOLD_BYTES)
+
+
+def _return_freed_memory() -> None:
+    """Return the freed memory malloc keeps (every thread's heap: up to WORKER_TRIM_THRESHOLD_BYTES at its top and
+    the free pages within it) to the system (glibc's malloc_trim), so that what one run of tile jobs, or the work
+    between runs, freed does not add to the next run's memory (kept across compress's stages, it grew the peak RSS
+    with the map's tile count). Nothing happens where the C library has no malloc_trim."""
+    malloc_trim = _libc_function("malloc_trim")
+    if malloc_trim is not None:
+        malloc_trim(0)
+
+
+def _libc_function(name: str):
+    """The C library's function `name`, or None where it has none."""
     import ctypes
 
     try:
-        mallopt = ctypes.CDLL(None).mallopt
+        return getattr(ctypes.CDLL(None), name)
     except (OSError, AttributeError):
-        return
-    mallopt(_M_MMAP_THRESHOLD, WORKER_MMAP_THRESHOLD_BYTES)
-    mallopt(_M_TRIM_THRESHOLD, WORKER_TRIM_THRESHOLD_BYTES)
+        return None
 
 
 _M_TRIM_THRESHOLD = -1

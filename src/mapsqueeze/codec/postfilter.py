@@ -340,7 +340,7 @@ def start_option(byte: int) -> int:
 class PatchChoiceSearch:
     """The result of `search_patch_choices` on one tile."""
 
-    choices: np.ndarray  # (n_patches,) option indices
+    choices: np.ndarray  # (n_patches,) uint8 option indices (PATCH_OPTIONS; compress holds them for every tile)
     before: float  # IoU with every patch under the start option
     after: float  # IoU with the choices
 
@@ -370,7 +370,10 @@ def search_patch_choices(original_world: np.ndarray, uncropped: np.ndarray, upsa
                               IOU_VOXEL_M, PATCH_CHOICE_SWEEPS, copy_weight,
                               IOU_PER_LOG_RATE / (8 * payload_bytes) if rated else 0.0,
                               PATCH_CHOICE_RATE_SWEEPS if rated else 0)
-    return None if found is None else PatchChoiceSearch(*found)
+    if found is None:
+        return None
+    choices, before, after = found
+    return PatchChoiceSearch(choices.astype(np.uint8), before, after)
 
 
 def patch_choice_prefix(search: PatchChoiceSearch, payload_bytes: int) -> bytes | None:

@@ -50,9 +50,10 @@ class EncodedTile:
     bounds_hi: tuple[int, int, int]
     extent_m: np.ndarray  # size of the tile's bounds box (metres)
     n_embedding: int  # the encoder's embedding points
-    points: np.ndarray | None  # network embedding (None when the network is no candidate: too sparse)
+    points: np.ndarray | None  # network embedding (None when the network is no candidate, or not the tile's choice)
     features: np.ndarray | None
-    candidates: list[Candidate] | None = None  # set by `compress._tile_candidates`, the network's last
+    candidates: list[Candidate] | None = None  # set by `compress._tile_candidates` (the network's last; without a
+    # rate budget only the chosen one)
     post_filter: int = OFF  # the network output's decode post-filter (`codec.postfilter`)
     patch_choices: PatchChoiceSearch | None = None  # the search's result on the network's decode, when run
     choice: Candidate | None = None
