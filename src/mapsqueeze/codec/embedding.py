@@ -100,6 +100,22 @@ class QuantisedEmbedding:
     def __len__(self) -> int:
         return len(self.cells)
 
+    def compact(self) -> "QuantisedEmbedding":
+        """The same embedding with its offsets and features in the smallest signed integer types that hold them
+        (what a map-wide fit holds of every tile; `QuantModel.fit` reads them as int64)."""
+        return QuantisedEmbedding(self.cells, _narrowest(self.offsets), _narrowest(self.features))
+
+
+def _narrowest(values: np.ndarray) -> np.ndarray:
+    """Integer values as int8, int16 or int32, the first that holds them (unchanged when none does)."""
+    if values.size == 0:
+        return values
+    low, high = values.min(), values.max()
+    for dtype in (np.int8, np.int16, np.int32):
+        if np.iinfo(dtype).min <= low and high <= np.iinfo(dtype).max:
+            return values.astype(dtype)
+    return values
+
 
 @dataclass(frozen=True)
 class Quantiser:
@@ -117,13 +133,14 @@ class Quantiser:
             feature_step_std: float = DEFAULT_FEATURE_STEP_STD) -> "Quantiser":
         """The quantiser for a map whose embedding features are `features` (M, D); the feature step is
         feature_step_std x the root mean square of the channels' standard deviations."""
-        features = np.asarray(features, dtype=np.float64)
+        features = np.array(features, dtype=np.float64)  # a copy, centred in place below
         dim = features.shape[1]
         if len(features) < 2:
             mean, basis, rms_std = np.zeros(dim), np.eye(dim), 1.0
         else:
             mean = features.mean(axis=0)
-            covariance = np.atleast_2d(np.cov(features - mean, rowvar=False))
+            features -= mean
+            covariance = np.atleast_2d(np.cov(features, rowvar=False))
             basis = np.linalg.eigh(covariance)[1][:, ::-1]  # largest variance first
             basis *= np.where(basis[np.abs(basis).argmax(axis=0), np.arange(dim)] < 0, -1.0, 1.0)  # fixed signs
             rms_std = max(float(np.sqrt(np.trace(covariance) / dim)), 1e-3)
@@ -210,14 +227,17 @@ class QuantModel:
 
     @classmethod
     def fit(cls, tiles: list[QuantisedEmbedding], grid: CellGrid, quantiser: Quantiser) -> "QuantModel":
-        """Histograms fitted to all tiles of a map at once (their cost is paid once, in the header)."""
-        gaps = np.concatenate([_cell_gaps(t.cells) for t in tiles] or [np.zeros(0, np.int64)])
-        offsets = np.concatenate([t.offsets for t in tiles] or [np.zeros((0, 3), np.int64)])
-        dim = len(quantiser.feature_mean)
-        features = np.concatenate([t.features for t in tiles] or [np.zeros((0, dim), np.int64)])
-        return cls(grid, quantiser, fit_gap_buckets(gaps),
-                   (Histogram.fit(offsets[:, :2]), Histogram.fit(offsets[:, 2])),
-                   tuple(Histogram.fit(features[:, channel]) for channel in range(features.shape[1])))
+        """Histograms fitted to all tiles of a map at once (their cost is paid once, in the header); each one's
+        values gathered from the tiles in turn (memory: one channel of the map, not all of them at once)."""
+
+        def channel(values_of, empty_shape=(0,)) -> np.ndarray:
+            return np.concatenate([values_of(t) for t in tiles] or [np.zeros(empty_shape, np.int64)])
+
+        return cls(grid, quantiser, fit_gap_buckets(channel(lambda t: _cell_gaps(t.cells))),
+                   (Histogram.fit(channel(lambda t: t.offsets[:, :2], (0, 2))),
+                    Histogram.fit(channel(lambda t: t.offsets[:, 2]))),
+                   tuple(Histogram.fit(channel(lambda t, c=c: t.features[:, c]))
+                         for c in range(len(quantiser.feature_mean))))
 
     def write(self, writer: ByteWriter, compact: bool = True) -> None:
         self.quantiser.write(writer, compact)

@@ -143,19 +143,18 @@ class QuantisedCodec(LatentCodec):
             feature_step_std: float = DEFAULT_FEATURE_STEP_STD) -> QuantisedCodec:
         """A map-wide quantiser (position step default: DEFAULT_POSITION_STEP_RS x r_s, at most
         DEFAULT_POSITION_STEP_MAX_M) and histograms."""
-        features = np.concatenate([f for _, f in embeddings] or [np.zeros((0, layout.n_features), np.float32)])
         if position_step_m is None:
             position_step_m = min(DEFAULT_POSITION_STEP_RS * layout.subsampling_dist_m, DEFAULT_POSITION_STEP_MAX_M)
-        quantiser = Quantiser.fit(features, position_step_m, feature_step_std)
+        quantiser = Quantiser.fit(np.concatenate([f for _, f in embeddings]
+                                                 or [np.zeros((0, layout.n_features), np.float32)]),
+                                  position_step_m, feature_step_std)
         grid = cls.grid(layout)
-        quantised = [quantise(points, f, grid, quantiser) for points, f in embeddings]
-        return cls(layout, QuantModel.fit(quantised, grid, quantiser))
+        return cls(layout, QuantModel.fit(_quantised(embeddings, grid, quantiser), grid, quantiser))
 
     def refit(self, embeddings: Sequence[Embedding]) -> QuantisedCodec:
         """Histograms refitted over these embeddings with the same grid and quantiser."""
         grid, quantiser = self.model.grid, self.model.quantiser
-        quantised = [quantise(points, features, grid, quantiser) for points, features in embeddings]
-        return QuantisedCodec(self.layout, QuantModel.fit(quantised, grid, quantiser))
+        return QuantisedCodec(self.layout, QuantModel.fit(_quantised(embeddings, grid, quantiser), grid, quantiser))
 
     def write(self, writer: ByteWriter, compact: bool = True) -> None:
         self.model.write(writer, compact)
@@ -172,6 +171,11 @@ class QuantisedCodec(LatentCodec):
 
     def decode(self, payload: bytes, max_points: int, what: str) -> Embedding:
         return dequantise(self.model.decode(payload, max_points, what), self.model.grid, self.model.quantiser)
+
+
+def _quantised(embeddings: Sequence[Embedding], grid: CellGrid, quantiser: Quantiser) -> list:
+    """Every embedding on the q lattice, compact (`QuantisedEmbedding.compact`: a map-wide fit holds them all)."""
+    return [quantise(points, features, grid, quantiser).compact() for points, features in embeddings]
 
 
 LATENT_CODECS: dict[Precision, type[LatentCodec]] = {
