@@ -206,6 +206,34 @@ def test_q_coder_round_trips_bit_exactly_to_the_dequantised_embedding():
         assert np.median(feature_error) <= np.sqrt(3) * quantiser.feature_step / 2 + 1e-2
 
 
+@pytest.mark.parametrize(("step_std", "expected"), [(0.3, np.int8), (1e-3, np.int16), (1e-6, np.int32),
+                                                    (1e-10, np.int64)])
+def test_compact_quantised_tiles_fit_the_same_histograms(step_std, expected):
+    """A map-wide fit holds its tiles compact (offsets, features in the smallest integer type: int8 to int32, or
+    int64 where nothing smaller holds them); the histograms (or the error of one too wide) are the int64 tiles'."""
+    rng = np.random.default_rng(2)
+    grid = CellGrid(2.0, (40.0, 40.0, 15.0))
+    tiles = [synthetic_embedding(rng, grid, m) for m in (300, 50, 1)]
+    quantiser = Quantiser.fit(np.concatenate([f for _, f in tiles]), 0.02, step_std)
+    quantised = [quantise(p, f, grid, quantiser) for p, f in tiles]
+    compact = [q.compact() for q in quantised]
+    assert {q.features.dtype for q in compact} == {np.dtype(expected)}
+    assert all(q.offsets.itemsize < 8 for q in compact)
+    for full, small in zip(quantised, compact):
+        assert all(np.array_equal(getattr(full, name), getattr(small, name))
+                   for name in ("cells", "offsets", "features"))
+
+    def header(tiles_held):  # or the error of a histogram too wide to fit
+        writer = ByteWriter()
+        try:
+            QuantModel.fit(tiles_held, grid, quantiser).write(writer)
+        except ValueError as exc:
+            return str(exc)
+        return writer.getvalue()
+
+    assert header(quantised) == header(compact)
+
+
 def test_q_coder_keeps_duplicate_cells():
     grid = CellGrid(2.0, (40.0, 40.0, 15.0))
     points = np.array([[1.0, 1.0, 1.0], [1.5, 1.2, 0.9], [39.9, 39.9, 14.9]], dtype=np.float32)
