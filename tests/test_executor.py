@@ -410,6 +410,38 @@ def test_an_unreachable_dask_scheduler_is_one_error_line_within_seconds(run_cli,
     assert err.count("\n") == 1 and elapsed < 15.0 and sorted(path.name for path in tmp_path.iterdir()) == ["map.ply"]
 
 
+_INTERRUPTED_HANDSHAKE_PROBE = """
+import signal, sys, time
+from mapsqueeze.codec import executor
+import distributed.comm  # loaded before the alarm is set
+
+def interrupt(signum, frame):
+    raise KeyboardInterrupt
+executor.SCHEDULER_TIMEOUT_S = 20
+signal.signal(signal.SIGALRM, interrupt)
+signal.alarm(1)
+started = time.monotonic()
+try:
+    executor._check_handshake(sys.argv[1])
+except KeyboardInterrupt:
+    print(round(time.monotonic() - started, 1))
+"""
+
+
+def test_ctrl_c_ends_a_wait_for_the_dask_handshake_at_once():
+    """Ctrl-C while a silent server is waited on for its handshake (SCHEDULER_TIMEOUT_S, here 20 s) ends the wait
+    at once, as it did the Dask client's, and the process with it (the connection's thread is a daemon)."""
+    pytest.importorskip("distributed")
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        started = time.monotonic()
+        done = subprocess.run([sys.executable, "-c", _INTERRUPTED_HANDSHAKE_PROBE,
+                               f"tcp://127.0.0.1:{server.getsockname()[1]}"], capture_output=True, text=True,
+                              timeout=60)
+        ended = time.monotonic() - started
+    assert done.returncode == 0, done.stderr
+    assert float(done.stdout) < 5.0 and ended < 15.0, (done.stdout, ended)
+
+
 def test_the_scheduler_probe_passes_a_listening_port_and_leaves_other_schemes_to_dask():
     pytest.importorskip("distributed")
     with socket.create_server(("127.0.0.1", 0)) as server:

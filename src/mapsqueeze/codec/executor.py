@@ -212,9 +212,9 @@ def _check_handshake(address: str) -> None:
     included, and close it, or raise OSError (no handshake within SCHEDULER_TIMEOUT_S). The Dask client waits for
     the handshake without a time limit (`distributed.comm.connect`), so a server that accepts connections and never
     answers (e.g. a port forward to a stopped scheduler) would hang it. The connection runs on an event loop of its
-    own, in a thread of its own (this thread may be running a loop, as in Jupyter)."""
+    own, in a daemon thread of its own (this thread may be running a loop, as in Jupyter), so that Ctrl-C ends the
+    wait, and the process, at once."""
     import asyncio
-    from concurrent.futures import ThreadPoolExecutor
 
     from distributed.comm import connect
     from distributed.comm.addressing import parse_address
@@ -228,12 +228,22 @@ def _check_handshake(address: str) -> None:
                                               **Security().get_connection_args("client")), SCHEDULER_TIMEOUT_S)
         await comm.close()
 
-    with ThreadPoolExecutor(1, thread_name_prefix="mapsqueeze-dask-handshake") as thread:
+    failed: list[BaseException] = []
+
+    def check() -> None:
         try:
-            thread.submit(asyncio.run, handshake()).result()
-        except asyncio.TimeoutError:
-            raise OSError("the server there accepts connections but sends no Dask handshake within "
-                          f"{SCHEDULER_TIMEOUT_S:g} s") from None
+            asyncio.run(handshake())
+        except BaseException as exc:  # noqa: BLE001 - raised in the calling thread
+            failed.append(exc)
+
+    thread = threading.Thread(target=check, name="mapsqueeze-dask-handshake", daemon=True)
+    thread.start()
+    thread.join()
+    if failed and isinstance(failed[0], asyncio.TimeoutError):
+        raise OSError("the server there accepts connections but sends no Dask handshake within "
+                      f"{SCHEDULER_TIMEOUT_S:g} s") from None
+    if failed:
+        raise failed[0]
 
 
 def open_executor(workers: int | None, dask_scheduler: str | None, n_jobs: int) -> Executor:
