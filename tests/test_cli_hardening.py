@@ -767,6 +767,27 @@ def test_printed_file_names_keep_their_brackets(run_cli, map_file, tiny_model_di
     assert code == 0 and out.endswith(f" points to {las}\n"), err
 
 
+@pytest.mark.parametrize("stderr", [False, True])
+def test_a_printed_line_on_a_terminal_is_the_text_as_it_is(monkeypatch, stderr):
+    """On a terminal too (rich), a printed line is its text whole: a file name's ':smile:' stays (no emoji code),
+    and a line longer than the terminal is not broken into several (copied from the terminal, a path stays whole)."""
+    import io
+    import re
+
+    from mapsqueeze.cli.app import print_line
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    terminal = Terminal()
+    monkeypatch.setattr(sys, "stderr" if stderr else "stdout", terminal)
+    monkeypatch.setenv("COLUMNS", "80")
+    text = "wrote /maps/:smile:/[bold]" + "long_folder_name/" * 8 + "map.msq: 1,234 points"
+    print_line(text, stderr=stderr)
+    assert re.sub(r"\x1b\[[0-9;]*m", "", terminal.getvalue()) == text + "\n"
+
+
 def test_a_count_of_one_is_singular(run_cli, tiny_model_dir, tmp_path):
     source = map_file_of(tmp_path / "one.ply", ground(1))
     code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "one.msq"), "--model", str(tiny_model_dir))
