@@ -47,6 +47,24 @@ print(" ".join(sorted(sys.modules)))
 """
 
 
+def test_the_typer_range_in_pyproject_is_the_versions_the_command_line_runs_on():
+    """`cli.commands.run` turns usage errors into one line by catching `typer.TyperException`, which typer has from
+    0.27.2 on (with 0.12 to 0.27.1 an unknown option was an AttributeError traceback); typer 0.29 imports pydantic
+    (the test below). pyproject's range must be that window, and hold the typer installed."""
+    import re
+    from importlib.metadata import version
+    from pathlib import Path
+
+    import typer
+    from packaging.requirements import Requirement
+
+    pyproject = (Path(__file__).parents[1] / "pyproject.toml").read_text()
+    typer_requirement = Requirement(re.search(r'"(typer[<>=!~ ].*?)"', pyproject).group(1))
+    allowed = typer_requirement.specifier
+    assert "0.27.1" not in allowed and "0.27.2" in allowed and "0.29.0" not in allowed, allowed
+    assert version("typer") in allowed and issubclass(typer.TyperException, Exception)
+
+
 def test_a_piped_compress_loads_neither_pydantic_nor_rich_nor_other_commands(tmp_path):
     """`mapsqueeze compress` with its output piped (as a script runs it): only the compress command's modules, no
     pydantic (typer >= 0.29 coerces every parameter through it: ~0.1 CPU-s), no rich (~0.05 CPU-s: its lines are
