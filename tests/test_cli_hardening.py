@@ -788,6 +788,24 @@ def test_a_printed_line_on_a_terminal_is_the_text_as_it_is(monkeypatch, stderr):
     assert re.sub(r"\x1b\[[0-9;]*m", "", terminal.getvalue()) == text + "\n"
 
 
+def test_a_file_name_the_output_encoding_cannot_hold_is_printed_escaped(tmp_path, monkeypatch):
+    """A name stdout's encoding cannot hold (an ASCII or cp1252 pipe, a Chinese file name) is printed with
+    backslash escapes: the command that wrote the file succeeds, where it ended in a UnicodeEncodeError traceback."""
+    import io
+
+    source = map_file_of(tmp_path / "in.ply", ground(100))
+    output = tmp_path / "地图.pcd"
+    stdout = io.TextIOWrapper(io.BytesIO(), encoding="ascii", write_through=True)
+    monkeypatch.setattr(sys, "stdout", stdout)
+    monkeypatch.setattr(sys, "argv", ["mapsqueeze", "convert", str(source), str(output)])
+    from mapsqueeze.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    assert exit_info.value.code == 0 and output.exists()
+    assert stdout.buffer.getvalue().decode("ascii") == f"wrote 100 points to {tmp_path}/\\u5730\\u56fe.pcd\n"
+
+
 def test_a_count_of_one_is_singular(run_cli, tiny_model_dir, tmp_path):
     source = map_file_of(tmp_path / "one.ply", ground(1))
     code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "one.msq"), "--model", str(tiny_model_dir))

@@ -76,9 +76,14 @@ def make_console(stderr: bool = False) -> Console:
 
 def print_line(text: str, stderr: bool = False) -> None:
     """One line of plain text on stdout (or stderr), printed as it is (a file name's brackets are no rich markup, its
-    ':smile:' no emoji code, a long line is not broken): through rich on a terminal; piped or redirected, without
-    loading rich (~0.05 CPU-s)."""
+    ':smile:' no emoji code, a long line is not broken; what the stream's encoding cannot hold, backslash-escaped):
+    through rich on a terminal; piped or redirected, without loading rich (~0.05 CPU-s)."""
     stream = sys.stderr if stderr else sys.stdout
+    encoding = getattr(stream, "encoding", None) or "utf-8"
+    try:
+        text.encode(encoding, getattr(stream, "errors", None) or "strict")
+    except UnicodeEncodeError:  # e.g. a Chinese file name printed to an ASCII or cp1252 pipe
+        text = text.encode(encoding, "backslashreplace").decode(encoding)
     if stream.isatty():
         make_console(stderr).print(text, markup=False, emoji=False, soft_wrap=True)
     else:
