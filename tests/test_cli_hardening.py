@@ -754,6 +754,14 @@ def test_help_shows_every_option_whole_in_80_columns(run_cli, monkeypatch):
 
 
 
+def test_no_command_prints_the_help_as_help_does(run_cli):
+    """`mapsqueeze` alone prints what `mapsqueeze --help` does (click 8.2 and typer 0.27 raise a usage error for an
+    empty command line, which printed the whole help squeezed into one 'error: Usage: ...' line, exit code 2)."""
+    code, out, err = run_cli()
+    assert (code, err) == (0, "") and out == run_cli("--help")[1]
+    assert out.startswith("Usage: ") and "\n  compress " in out
+
+
 def test_printed_file_names_keep_their_brackets(run_cli, map_file, tiny_model_dir, tmp_path):
     """File names are printed as they are: rich's markup read '[bold]' in one as a style (left out of the line) and
     '[/b]' as a closing tag it refused with a traceback after the file was written."""

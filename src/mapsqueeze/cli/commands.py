@@ -35,11 +35,13 @@ def load_commands(args: list[str] | None = None) -> typer.Typer:
 
 
 def run() -> None:
-    """Run the command of sys.argv: library errors and usage errors become one `error: ...` line and exit code 2
-    (SIGINT and SIGTERM propagate to `cli.main`)."""
-    load_commands(sys.argv[1:])
+    """Run the command of sys.argv (none: `--help`, which click 8.2 would make a usage error holding the help):
+    library errors and usage errors become one `error: ...` line and exit code 2 (SIGINT and SIGTERM propagate to
+    `cli.main`)."""
+    args = sys.argv[1:] or ["--help"]
+    load_commands(args)
     try:
-        result = app(standalone_mode=False)
+        result = app(args=args, standalone_mode=False)
     except MapsqueezeError as exc:
         _fail(str(exc))
     except typer.Exit as exc:
