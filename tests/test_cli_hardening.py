@@ -814,6 +814,18 @@ def test_a_file_name_the_output_encoding_cannot_hold_is_printed_escaped(tmp_path
     assert stdout.buffer.getvalue().decode("ascii") == f"wrote 100 points to {tmp_path}/\\u5730\\u56fe.pcd\n"
 
 
+def test_info_rows_the_output_encoding_cannot_hold_are_printed_escaped(monkeypatch):
+    """`info`'s rows (a custom model's name is any UTF-8 text) on an ASCII pipe: escaped, as print_line's lines."""
+    import io
+
+    from mapsqueeze.cli.app import print_rows
+
+    stdout = io.TextIOWrapper(io.BytesIO(), encoding="ascii", write_through=True)
+    monkeypatch.setattr(sys, "stdout", stdout)
+    print_rows([("model", "custom, named '模型'"), ("points", "1,000")])
+    assert stdout.buffer.getvalue().decode("ascii") == "model   custom, named '\\u6a21\\u578b'\npoints  1,000\n"
+
+
 def test_a_count_of_one_is_singular(run_cli, tiny_model_dir, tmp_path):
     source = map_file_of(tmp_path / "one.ply", ground(1))
     code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "one.msq"), "--model", str(tiny_model_dir))

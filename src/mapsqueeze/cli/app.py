@@ -92,7 +92,7 @@ def print_line(text: str, stderr: bool = False) -> None:
 
 def print_rows(rows: list[tuple[str, str]]) -> None:
     """(name, value) rows on stdout, the values aligned: a rich table on a terminal; piped or redirected, one plain
-    line per row without the trailing spaces a table pads its last column with."""
+    line per row (`print_line`) without the trailing spaces a table pads its last column with."""
     if sys.stdout.isatty():
         from rich.table import Table
 
@@ -103,4 +103,4 @@ def print_rows(rows: list[tuple[str, str]]) -> None:
         return
     width = max((len(name) for name, _ in rows), default=0)
     for name, value in rows:
-        print(f"{name:<{width}}  {value}".rstrip())
+        print_line(f"{name:<{width}}  {value}".rstrip())
