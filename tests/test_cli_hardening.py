@@ -826,6 +826,25 @@ def test_info_rows_the_output_encoding_cannot_hold_are_printed_escaped(monkeypat
     assert stdout.buffer.getvalue().decode("ascii") == "model   custom, named '\\u6a21\\u578b'\npoints  1,000\n"
 
 
+def test_info_rows_on_a_terminal_are_their_text(monkeypatch):
+    """`info`'s table on a terminal (rich) shows its values as they are: a custom model's name '[/b]x' is no
+    closing markup tag (rich refused it with a traceback) and '[bold]' no style."""
+    import io
+    import re
+
+    from mapsqueeze.cli.app import print_rows
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    terminal = Terminal()
+    monkeypatch.setattr(sys, "stdout", terminal)
+    print_rows([("model", "custom, named '[/b]x[bold]y'"), ("points", "1,000")])
+    lines = [line.rstrip() for line in re.sub(r"\x1b\[[0-9;]*m", "", terminal.getvalue()).splitlines()]
+    assert lines == [" model   custom, named '[/b]x[bold]y'", " points  1,000"]
+
+
 def test_a_count_of_one_is_singular(run_cli, tiny_model_dir, tmp_path):
     source = map_file_of(tmp_path / "one.ply", ground(1))
     code, out, _ = run_cli("compress", str(source), "-o", str(tmp_path / "one.msq"), "--model", str(tiny_model_dir))

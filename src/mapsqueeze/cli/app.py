@@ -95,10 +95,11 @@ def print_rows(rows: list[tuple[str, str]]) -> None:
     line per row (`print_line`) without the trailing spaces a table pads its last column with."""
     if sys.stdout.isatty():
         from rich.table import Table
+        from rich.text import Text
 
         table = Table(show_header=False, box=None)
         for name, value in rows:
-            table.add_row(name, value)
+            table.add_row(Text(name), Text(value))  # as they are: a model's name '[/b]' is no rich markup
         make_console().print(table)
         return
     width = max((len(name) for name, _ in rows), default=0)
