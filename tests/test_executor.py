@@ -1,5 +1,6 @@
 """Tile jobs in pool threads and on a Dask cluster give the bytes and points of the serial run."""
 
+import platform
 import socket
 import subprocess
 import sys
@@ -150,7 +151,7 @@ def _page_faults_of_a_second_round(context, sizes_mb):
     return resource.getrusage(who).ru_minflt - before
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
 def test_pool_threads_reuse_freed_memory_for_the_next_tile():
     pool = executor_module.ThreadExecutor(2)
     try:
@@ -160,7 +161,7 @@ def test_pool_threads_reuse_freed_memory_for_the_next_tile():
     assert max(faults) < 500
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
 def test_serial_decoding_reuses_freed_memory_for_the_next_tile():
     """In a fresh process (malloc's settings are the process's): once a serial executor is opened, arrays of a few
     MB are taken from the freed ones (with glibc's defaults a second round maps and faults in ~2,000 pages)."""
@@ -172,7 +173,7 @@ def test_serial_decoding_reuses_freed_memory_for_the_next_tile():
     assert int(done.stdout) < 100
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc_trim")
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc_trim")
 def test_a_closed_executor_returns_the_freed_memory_it_kept():
     """In a fresh process: the 48 MB of arrays freed while a serial executor is open stay resident (kept for the
     next tile) until it closes, which returns them to the system (what one of compress's stages frees does not add

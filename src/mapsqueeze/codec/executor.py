@@ -314,12 +314,13 @@ def _return_freed_memory() -> None:
 
 
 def _libc_function(name: str):
-    """The C library's function `name`, or None where it has none."""
+    """The C library's function `name`, or None where it has none (or where the process's own symbols cannot be
+    opened, as on Windows)."""
     import ctypes
 
     try:
         return getattr(ctypes.CDLL(None), name)
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):
         return None
 
 
