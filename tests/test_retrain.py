@@ -1,0 +1,49 @@
+"""benchmarks/retrain.sh: the one-command retraining of the shipped rate points (simulate, train, pack)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "retrain.sh"
+
+
+def _run(out: Path, **env: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["bash", str(SCRIPT), str(out), "0.5"], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHON": sys.executable, "WORKERS": "1", **env})
+
+
+@pytest.mark.slow
+def test_retrain_simulates_trains_and_packs_a_model_that_loads(tmp_path):
+    from mapsqueeze.model import load_network
+
+    run = _run(tmp_path / "run", DEVICE="cpu", RATES="e1", SUBMAPS="2", SPARSE="1", MAX_STEPS="1")
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "e1: 1 steps" in run.stdout
+    summary = json.loads((tmp_path / "run" / "e1" / "summary.json").read_text())
+    assert summary["steps"] == 1
+    with tarfile.open(tmp_path / "run" / "models.tar") as tar:
+        assert sorted(tar.getnames()) == ["e1", "e1/config.json", "e1/model.safetensors"]
+        tar.extractall(tmp_path / "models", filter="data")
+    network, _ = load_network(tmp_path / "models" / "e1")
+    assert network.config.subsampling_dist == pytest.approx(2.0)
+    shipped = SCRIPT.parents[1] / "src" / "mapsqueeze" / "models" / "e1" / "model.safetensors"
+    assert (tmp_path / "models" / "e1" / "model.safetensors").read_bytes() != shipped.read_bytes()  # it trained
+
+
+def test_retrain_refuses_cuda_without_a_device(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    run = _run(tmp_path / "run", DEVICE="cuda")
+    assert run.returncode != 0
+    assert run.stderr.strip().splitlines() == [
+        "error: DEVICE=cuda but torch sees no CUDA device (set DEVICE=cpu to train on the CPU)"]
+    assert not (tmp_path / "run" / "sim_mix").exists()
