@@ -74,7 +74,7 @@ class TileEntry:
     """One row of the tile table."""
 
     index: tuple[int, int, int]
-    n_points: int  # points of the input map in this tile (the default decoded count)
+    n_points: int  # points of the input map in this tile (the default decoded count of an input-count header)
     bounds_lo: tuple[int, int, int]  # tight box of the tile's points in units of tile_size / BOUNDS_STEPS
     bounds_hi: tuple[int, int, int]
     coding: TileCoding
