@@ -19,8 +19,8 @@ def view_command(
     output: Path | None = typer.Option(None, "-o", "--output", metavar="view.html",
                                        help="HTML page to write (atomically; default: MAP.html beside MAP.msq)"),
     max_points: int = typer.Option(DEFAULT_MAX_POINTS, "--max-points", min=1, metavar="N",
-                                   help="points drawn per cloud: an evenly spread subset (about 13 bytes of page "
-                                        "each)"),
+                                   help="points drawn per cloud: an evenly spread subset (8-13 bytes of page each: "
+                                        "13 with errors and intensity)"),
     model: str | None = typer.Option(None, "--model", help="model to decode with (default: the one in the file)"),
     open_page: bool = typer.Option(False, "--open", help="open the page in the default web browser"),
 ) -> None:
