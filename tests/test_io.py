@@ -276,6 +276,96 @@ def test_pcd_points_with_nan_coordinates_are_left_out_with_their_attributes(tmp_
                                   cloud.attributes["intensity"])
 
 
+PCL_COLOURS = np.array([0xFFFF0000, 0xFF00FF00, 0xFF0000FF, 0xFF808040], np.uint32)  # 0xAARRGGBB, alpha 255
+
+
+def pcl_rgb_records(n: int, kind: str) -> np.ndarray:
+    """x, y, z and PCL's packed colour: `rgb` a float32 as pcl::PointXYZRGB writes it (alpha 255: each a NaN
+    bit pattern) or `rgba` a uint32 (alpha 0..255)."""
+    colours = PCL_COLOURS[np.arange(n) % len(PCL_COLOURS)]
+    if kind == "rgba":
+        colours = (colours & 0x00FFFFFF) | (np.arange(n, dtype=np.uint32) % 256 << 24)
+    records = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), (kind, "<f4" if kind == "rgb" else "<u4")])
+    records["x"], records["y"], records["z"] = local_cloud(n).T
+    records[kind] = colours.view(records.dtype[kind])
+    return records
+
+
+def pcl_pcd(path: Path, records: np.ndarray, data: str, binary_compressed_pcd) -> Path:
+    """records as a PCD with DATA `data`; ascii as PCL writes it (an `rgb` float's bits as an unsigned integer)."""
+    if data == "binary_compressed":
+        return binary_compressed_pcd(path, records)
+    names = records.dtype.names
+    kinds = [records.dtype[name] for name in names]
+    header = (f"VERSION 0.7\nFIELDS {' '.join(names)}\nSIZE {' '.join(str(k.itemsize) for k in kinds)}\n"
+              f"TYPE {' '.join(k.kind.upper() for k in kinds)}\nCOUNT {' '.join('1' for _ in names)}\n"
+              f"WIDTH {len(records)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(records)}\nDATA {data}\n")
+    if data == "binary":
+        body = records.tobytes()
+    else:
+        colour = names[3]
+        body = "".join(f"{x!r} {y!r} {z!r} {c}\n" for x, y, z, c in zip(
+            records["x"].tolist(), records["y"].tolist(), records["z"].tolist(),
+            records[colour].view("<u4").tolist())).encode()
+    path.write_bytes(header.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["rgb", "rgba"])
+@pytest.mark.parametrize("data", PCD_DATA)
+def test_pcd_packed_colour_reads_as_red_green_blue(tmp_path, kind, data, binary_compressed_pcd):
+    """PCL's packed colour field (`rgb` float32, NaN when alpha is 255; `rgba` uint32) is read as its bytes: uint8
+    red, green, blue (and alpha for rgba), not as a number (whose median and quantisation mix the channels)."""
+    records = pcl_rgb_records(40, kind)
+    cloud = read_point_cloud(pcl_pcd(tmp_path / "rgb.pcd", records, data, binary_compressed_pcd))
+    packed = records[kind].view("<u4")
+    expected = {"red": packed >> 16 & 255, "green": packed >> 8 & 255, "blue": packed & 255}
+    if kind == "rgba":
+        expected["alpha"] = packed >> 24
+    assert list(cloud.attributes) == list(expected)
+    for name, values in expected.items():
+        assert cloud.attributes[name].dtype == np.uint8
+        np.testing.assert_array_equal(cloud.attributes[name], values, err_msg=name)
+
+
+@pytest.mark.parametrize("alpha", [False, True])
+@pytest.mark.parametrize("name", ["a.pcd", "a.pcd-ascii"])
+def test_pcd_writes_uint8_colour_packed_as_pcl_does(tmp_path, name, alpha):
+    """uint8 red, green, blue are written as PCL's `rgb` float32 (alpha 255, as pcl::PointXYZRGB; an unsigned integer
+    in ascii, as PCL writes it), with alpha as `rgba` uint32; read back they are the same."""
+    rng = np.random.default_rng(3)
+    attributes = {channel: rng.integers(0, 256, 50).astype(np.uint8) for channel in ("red", "green", "blue")}
+    if alpha:
+        attributes["alpha"] = rng.integers(0, 256, 50).astype(np.uint8)
+    path = tmp_path / name.replace("-ascii", "")
+    write_points(path, local_cloud(50), attributes=attributes, format=name.split(".")[1])
+    header = path.read_bytes().split(b"DATA")[0].decode()
+    assert ("FIELDS x y z rgba\n" if alpha else "FIELDS x y z rgb\n") in header
+    assert ("TYPE F F F U\n" if alpha else "TYPE F F F F\n") in header
+    cloud = read_point_cloud(path)
+    assert list(cloud.attributes) == list(attributes)
+    for channel, values in attributes.items():
+        np.testing.assert_array_equal(cloud.attributes[channel], values, err_msg=channel)
+
+
+def test_pcl_rgb_pcd_compresses(tmp_path, tiny_model_dir):
+    """A pcl::PointXYZRGB PCD (its rgb floats are NaN bit patterns) compresses, its colours decoded as uint8 red,
+    green, blue from the input's colours."""
+    import mapsqueeze
+
+    records = pcl_rgb_records(600, "rgb")
+    records["x"], records["y"], records["z"] = np.random.default_rng(5).uniform(0.5, 3.5, (3, 600))
+    records["rgb"] = PCL_COLOURS[(records["x"] > 2).astype(int)].view("<f4")  # red and green halves
+    source = pcl_pcd(tmp_path / "rgb.pcd", records, "binary", None)
+    mapsqueeze.compress_file(source, tmp_path / "rgb.msq", model=tiny_model_dir, attribute_options=
+                             mapsqueeze.AttributeOptions(voxel_m=0.5))
+    decoded = mapsqueeze.decompress_cloud(tmp_path / "rgb.msq", model=tiny_model_dir)
+    assert {name: values.dtype for name, values in decoded.attributes.items()} == dict.fromkeys(
+        ("red", "green", "blue"), np.uint8)
+    colours = np.column_stack([decoded.attributes[name] for name in ("red", "green", "blue")])
+    assert {tuple(colour) for colour in colours.tolist()} <= {(255, 0, 0), (0, 255, 0)}
+
+
 @pytest.mark.parametrize("data", PCD_DATA)
 def test_pcd_infinite_or_only_nan_coordinates_are_refused(tmp_path, data, binary_compressed_pcd):
     points = local_cloud(400).astype(np.float32)

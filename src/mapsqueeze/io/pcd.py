@@ -2,6 +2,9 @@
 DATA ascii and binary.
 
 Fields with COUNT k > 1 become attributes `name_0` .. `name_{k-1}`; padding fields named `_` are dropped.
+PCL's packed colour, `rgb` (a float32 in pcl::PointXYZRGB, a NaN bit pattern when alpha is 255; in ascii, as PCL writes
+it, the bits as an unsigned integer) or `rgba` (uint32), 0xAARRGGBB, is read as uint8 attributes `red`, `green`,
+`blue` (and `alpha` for rgba) and written back packed the same way.
 Points whose x, y or z is NaN, the "no return" marker of organised clouds written by PCL and ROS drivers, are left
 out with their attributes and counted (`PointCloud.nan_points_dropped`); infinite coordinates are refused.
 DATA binary_compressed (pcl::io::savePCDFileBinaryCompressed, Autoware maps) is a uint32 compressed size, a uint32
@@ -33,6 +36,11 @@ _TYPE_CODES = {"F": "f", "I": "i", "U": "u"}
 _VALID_SIZES = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
 _PADDING_FIELD = "_"
 _COMPRESSED_SIZES = struct.Struct("<II")  # binary_compressed: compressed, uncompressed bytes
+_COLOUR_CHANNELS = ("red", "green", "blue", "alpha")  # bytes 2, 1, 0, 3 of a packed colour (0xAARRGGBB)
+_PACKED_COLOURS = {"rgb": _COLOUR_CHANNELS[:3], "rgba": _COLOUR_CHANNELS}
+"""PCL's packed colour fields and the uint8 channels each holds."""
+_RGB_ALPHA = 255
+"""Alpha written into a packed `rgb` float, as pcl::PointXYZRGB sets it."""
 
 
 def _parse_header(data: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
@@ -112,7 +120,13 @@ def _parse_ascii(body: bytes, dtype: np.dtype, num_points: int, path: Path) -> n
     column = 0
     for name in dtype.names:
         width = int(np.prod(dtype[name].shape))
-        records[name] = rows[:, column : column + width].reshape(records[name].shape)
+        values = rows[:, column : column + width].reshape(records[name].shape)
+        if name in _PACKED_COLOURS and dtype[name] == np.dtype("<f4"):  # PCL writes its bits as an integer
+            whole = (values == np.floor(values)) & (values >= 0) & (values < 2.0**32)
+            values = np.where(whole, values, 0).astype("<u4")
+            values[~whole] = rows[~whole, column].astype("<f4").view("<u4")
+            values = values.view("<f4")
+        records[name] = values
         column += width
     return records
 
@@ -215,14 +229,52 @@ def pcd_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
     kept = np.flatnonzero(~missing) if n_missing else None
     n_kept = num_points - n_missing
     names = [name for name in fields if name not in ("x", "y", "z") and not name.startswith(_PADDING_FIELD)]
+    packed = _packed_colour_fields(fields)
     for first in range(0, max(n_kept, 1), chunk_points):
         rows = slice(first, first + chunk_points) if kept is None else kept[first : first + chunk_points]
         xyz = np.column_stack([fields[axis][rows] for axis in ("x", "y", "z")]).astype(np.float64, copy=False)
         points = validate_points(xyz, str(path), first, n_kept)
         chunk_attributes = {}
         for name in names if attributes else ():
-            chunk_attributes.update(split_columns(name, np.array(fields[name][rows])))
+            if name in packed:
+                chunk_attributes.update(_unpack_colour(np.array(fields[name][rows]), _PACKED_COLOURS[name]))
+            else:
+                chunk_attributes.update(split_columns(name, np.array(fields[name][rows])))
         yield PointCloud(points, chunk_attributes, nan_points_dropped=n_missing if first == 0 else 0)
+
+
+def _packed_colour_fields(fields: dict[str, np.ndarray]) -> set[str]:
+    """The packed colour fields to read as channels: `rgb` / `rgba` of 4 bytes a point, at most one, and only where
+    no field already has a channel's name."""
+    packed = {name for name in _PACKED_COLOURS if name in fields and fields[name].ndim == 1
+              and fields[name].dtype.itemsize == 4}
+    if len(packed) != 1 or any(channel in fields for channel in _COLOUR_CHANNELS):
+        return set()
+    return packed
+
+
+def _unpack_colour(values: np.ndarray, channels: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """A packed colour field's (N,) 4-byte values (0xAARRGGBB, any dtype) -> uint8 channels."""
+    bits = values.view("<u4")
+    shifts = {"red": 16, "green": 8, "blue": 0, "alpha": 24}
+    return {channel: (bits >> shifts[channel] & 0xFF).astype(np.uint8) for channel in channels}
+
+
+def _packed_colour(dtypes: dict[str, np.dtype]) -> str | None:
+    """The packed field that uint8 `red`, `green`, `blue` (and `alpha`) attributes are written as: `rgba` with
+    alpha, else `rgb`; None where they are missing, not uint8, or a field has a packed field's name."""
+    channels = _COLOUR_CHANNELS if "alpha" in dtypes else _COLOUR_CHANNELS[:3]
+    if any(dtypes.get(channel) != np.uint8 for channel in channels) or any(name in dtypes for name in _PACKED_COLOURS):
+        return None
+    return "rgba" if "alpha" in dtypes else "rgb"
+
+
+def _pack_colour(attributes: dict[str, np.ndarray], field: str) -> np.ndarray:
+    """uint8 channels -> PCL's packed colour: `rgb` a float32 (alpha _RGB_ALPHA), `rgba` a uint32."""
+    alpha = attributes["alpha"] if field == "rgba" else _RGB_ALPHA
+    bits = (np.uint32(alpha) << 24 | attributes["red"].astype(np.uint32) << 16
+            | attributes["green"].astype(np.uint32) << 8 | attributes["blue"].astype(np.uint32)).astype("<u4")
+    return bits.view("<f4") if field == "rgb" else bits
 
 
 def _format_spec(dtype: np.dtype) -> tuple[str, str, str]:
@@ -234,20 +286,34 @@ def _format_spec(dtype: np.dtype) -> tuple[str, str, str]:
 
 def write_pcd(path: Path, chunks: ChunkSource, stats: CloudStats, encoding: str) -> tuple[str, ...]:
     """Write PCD with DATA `encoding` ('binary' or 'ascii'), assembled in memory; x, y, z as float32 unless that
-    errs > 1 mm."""
+    errs > 1 mm; uint8 red, green, blue (and alpha) packed as PCL's `rgb` (`rgba`) in place of the first of them."""
     xyz_code = "<f4" if stats.float32_error <= FLOAT32_MAX_ERROR_M else "<f8"
+    colour = _packed_colour(stats.dtypes)
+    channels = set(_PACKED_COLOURS[colour]) if colour else set()
     layout = [(axis, xyz_code) for axis in ("x", "y", "z")]
-    layout += [(name, dtype.newbyteorder("<")) for name, dtype in stats.dtypes.items()]
+    for name, dtype in stats.dtypes.items():
+        if name not in channels:
+            layout.append((name, dtype.newbyteorder("<")))
+        elif name == "red":
+            layout.append((colour, "<f4" if colour == "rgb" else "<u4"))
     parts = []
     for chunk in chunks():
         part = np.empty(len(chunk), dtype=np.dtype(layout))
         for column, axis in enumerate(("x", "y", "z")):
             part[axis] = chunk.points[:, column]
         for name, values in chunk.attributes.items():
-            part[name] = values
+            if name not in channels:
+                part[name] = values
+        if colour:
+            part[colour] = _pack_colour(chunk.attributes, colour)
         parts.append(part)
     records = np.concatenate(parts)
     specs = [_format_spec(records.dtype[name]) for name in records.dtype.names]
+    text_records = records
+    if colour == "rgb":  # in ascii its bits as an unsigned integer, as PCL writes it (alpha 255: each float a NaN)
+        specs[records.dtype.names.index("rgb")] = ("F", "4", "%d")
+        text_records = records.view([(name, "<u4" if name == "rgb" else records.dtype[name])
+                                     for name in records.dtype.names])
     header = "\n".join(
         [
             "# .PCD v0.7 - Point Cloud Data file format (written by mapsqueeze)",
@@ -267,7 +333,7 @@ def write_pcd(path: Path, chunks: ChunkSource, stats: CloudStats, encoding: str)
         body = records.tobytes()
     else:
         text = io.StringIO()
-        np.savetxt(text, records, fmt=[fmt for _, _, fmt in specs])
+        np.savetxt(text, text_records, fmt=[fmt for _, _, fmt in specs])
         body = text.getvalue().encode("ascii")
     with atomic_output(path) as temp:
         temp.write_bytes(header.encode("ascii") + b"\n" + body)
