@@ -208,3 +208,19 @@ def test_cli_decompress_without_attributes_writes_the_same_geometry_only(tmp_pat
     full, bare = read_point_cloud(tmp_path / "full.ply"), read_point_cloud(tmp_path / "bare.ply")
     assert "intensity" in full.attributes and "intensity" not in bare.attributes
     assert np.array_equal(full.points, bare.points)
+
+
+@pytest.mark.parametrize("voxel_m, relative_step, message", [(-1.0, 1 / 32, "attribute voxel"),
+                                                             (float("nan"), 1 / 32, "attribute voxel"),
+                                                             (1.0, 0.0, "attribute step"),
+                                                             (1.0, 2.0, "attribute step")])
+def test_attribute_options_out_of_range_are_refused_without_attributes_too(tmp_path, run_cli, voxel_m,
+                                                                           relative_step, message):
+    """A bad voxel edge or step is an error whether or not the map has attributes (not silently ignored)."""
+    with pytest.raises(InvalidPointCloudError, match=message):
+        AttributeOptions(voxel_m=voxel_m, relative_step=relative_step)
+    write_points(tmp_path / "map.ply", np.random.default_rng(0).uniform(0, 5, (300, 3)))
+    code, out, err = run_cli("compress", str(tmp_path / "map.ply"), "-o", str(tmp_path / "map.msq"),
+                             "--attribute-voxel", str(voxel_m), "--attribute-step", str(relative_step))
+    assert (code, out) == (2, "") and err.startswith(f"error: {message}") and err.count("\n") == 1
+    assert not (tmp_path / "map.msq").exists()

@@ -204,15 +204,21 @@ class ValueRange:
                           self.constant if same else None)
 
 
-def build_schema(ranges: dict[str, ValueRange], voxel_m: float, relative_step: float,
-                 metadata: dict) -> AttributeSchema:
-    """The schema for attributes with their map-wide value ranges: an attribute with one value (bit for bit) is
-    stored as that constant, the others coded per tile."""
+def check_resolution(voxel_m: float, relative_step: float) -> None:
+    """Raise InvalidPointCloudError unless voxel_m (metres) >= MIN_VOXEL_M and MIN_RELATIVE_STEP <= relative_step
+    (a fraction of each attribute's range) <= 1, both finite."""
     if not (np.isfinite(voxel_m) and voxel_m >= MIN_VOXEL_M):
         raise InvalidPointCloudError(f"attribute voxel must be at least {MIN_VOXEL_M} m, got {voxel_m}")
     if not (np.isfinite(relative_step) and MIN_RELATIVE_STEP <= relative_step <= 1):
         raise InvalidPointCloudError(f"attribute step must be a fraction of the range from {MIN_RELATIVE_STEP:g} to "
                                      f"1, got {relative_step}")
+
+
+def build_schema(ranges: dict[str, ValueRange], voxel_m: float, relative_step: float,
+                 metadata: dict) -> AttributeSchema:
+    """The schema for attributes with their map-wide value ranges: an attribute with one value (bit for bit) is
+    stored as that constant, the others coded per tile."""
+    check_resolution(voxel_m, relative_step)
     if len(ranges) > _MAX_ATTRIBUTES:
         raise InvalidPointCloudError(f"{len(ranges)} attributes; at most {_MAX_ATTRIBUTES} can be coded")
     specs = []

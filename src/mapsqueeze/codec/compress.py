@@ -18,6 +18,7 @@ from mapsqueeze.codec.attributes import (
     AttributeSchema,
     ValueRange,
     build_schema,
+    check_resolution,
     parse_selection,
 )
 from mapsqueeze.codec.container import (
@@ -63,6 +64,9 @@ class AttributeOptions:
     selection: str | tuple[str, ...] = "all"
     voxel_m: float = DEFAULT_VOXEL_M
     relative_step: float = DEFAULT_RELATIVE_STEP
+
+    def __post_init__(self) -> None:
+        check_resolution(self.voxel_m, self.relative_step)  # an error whether or not the map has attributes
 
 
 def _attribute_schema(ranges: dict[str, ValueRange], metadata: dict | None,
