@@ -853,3 +853,42 @@ def test_a_count_of_one_is_singular(run_cli, tiny_model_dir, tmp_path):
     assert (code, out) == (0, f"wrote 1 point to {tmp_path / 'back.ply'}\n")
     code, out, _ = run_cli("convert", str(source), str(tmp_path / "one.las"))
     assert (code, out) == (0, f"wrote 1 point to {tmp_path / 'one.las'}\n")
+
+
+def test_compress_says_when_no_coding_fits_the_bpp_budget(run_cli, map_file, tiny_model_dir, tmp_path):
+    """A --bpp budget no choice of codings meets (here below the header's own bits) is one warning line naming the
+    rate written; a budget that is met, none."""
+    code, out, err = run_cli("compress", str(map_file), "-o", str(tmp_path / "tight.msq"), "--model",
+                             str(tiny_model_dir), "--bpp", "0.001")
+    rate = mapsqueeze.info(tmp_path / "tight.msq").bits_per_point
+    assert code == 0 and out.startswith("wrote") and rate > 0.001
+    assert err == (f"warning: {tmp_path / 'tight.msq'} takes {rate:.4f} bits per point, more than --bpp 0.001: no "
+                   "choice of codings fits\n")
+    code, _, err = run_cli("compress", str(map_file), "-o", str(tmp_path / "loose.msq"), "--model",
+                           str(tiny_model_dir), "--bpp", "100")
+    assert code == 0 and err == ""
+
+
+@pytest.mark.parametrize("command", ["decompress-output", "eval", "view-original", "convert"])
+def test_a_msq_where_a_point_cloud_is_expected_is_named_as_such(run_cli, map_file, tiny_model_dir, tmp_path,
+                                                                 command):
+    """A .msq given as a point cloud (input or output) is one error line saying what a .msq is, not advice to set a
+    format that eval and view have no option for."""
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, model=tiny_model_dir)
+    args = {"decompress-output": ["decompress", msq, "-o", tmp_path / "out.msq", "--model", tiny_model_dir],
+            "eval": ["eval", msq, map_file],
+            "view-original": ["view", msq, "--original", msq, "-o", tmp_path / "v.html", "--model", tiny_model_dir],
+            "convert": ["convert", msq, tmp_path / "out.ply"]}[command]
+    code, out, err = run_cli(*map(str, args))
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert err.startswith("error: ") and "is a mapsqueeze container, not a point cloud" in err, err
+    assert "set the format" not in err
+
+
+def test_eval_of_a_ground_truth_without_extent_gives_no_overlap_warning(run_cli, tmp_path):
+    """Every ground-truth point in one place: D_e of a tenth of a millimetre is no sign of another frame."""
+    write_points(tmp_path / "gt.ply", np.tile([[1.0, 2.0, 3.0]], (50, 1)))
+    write_points(tmp_path / "rec.ply", np.tile([[1.0, 2.0, 3.0001], [1.0, 2.0, 2.9999]], (35, 1)))
+    code, out, err = run_cli("eval", str(tmp_path / "gt.ply"), str(tmp_path / "rec.ply"), "--json")
+    assert code == 0 and err == "" and json.loads(out)["d_e"] > 0

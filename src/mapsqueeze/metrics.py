@@ -221,14 +221,14 @@ def evaluate(
 
 def overlap_warning(gt: np.ndarray, rec: np.ndarray, d_e: float) -> str | None:
     """Why the two clouds look like different places (bounding boxes disjoint, or D_e above
-    MAX_D_E_SHARE_OF_EXTENT of the ground truth's extent: another frame or offset?), or None."""
+    MAX_D_E_SHARE_OF_EXTENT of the ground truth's extent, when it has one: another frame or offset?), or None."""
     (gt_low, gt_high), (rec_low, rec_high) = bounding_box(gt), bounding_box(rec)
     if (gt_high < rec_low).any() or (rec_high < gt_low).any():
         return (f"the clouds do not overlap: ground truth spans {np.round(gt_low, 2).tolist()} .. "
                 f"{np.round(gt_high, 2).tolist()}, the reconstruction {np.round(rec_low, 2).tolist()} .. "
                 f"{np.round(rec_high, 2).tolist()} (different coordinate frames?)")
     extent = float(np.linalg.norm(gt_high - gt_low))
-    if d_e > MAX_D_E_SHARE_OF_EXTENT * extent:
+    if extent > 0 and d_e > MAX_D_E_SHARE_OF_EXTENT * extent:
         return (f"D_e {d_e:.3f} m is more than {MAX_D_E_SHARE_OF_EXTENT:.0%} of the ground truth's extent "
                 f"({extent:.1f} m diagonal): the clouds barely overlap (different coordinate frames?)")
     return None

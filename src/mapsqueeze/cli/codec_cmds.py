@@ -126,6 +126,9 @@ def compress_command(
                   f"{summary.file_bytes:,} bytes, {summary.bits_per_point:.4f} bits per point"
                   + (f"; attributes {', '.join(summary.attributes)}: {summary.attribute_bytes:,} bytes"
                      if summary.attributes else ""))
+    if bpp is not None and summary.bits_per_point > bpp:  # the smallest choices were taken (`codec.modes`)
+        print(f"warning: {output} takes {summary.bits_per_point:.4f} bits per point, more than --bpp {bpp:g}: no "
+              "choice of codings fits", file=sys.stderr)
 
 
 @app.command("decompress")

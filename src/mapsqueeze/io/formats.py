@@ -111,6 +111,9 @@ def format_name(path: str | os.PathLike, format: str | None = None) -> str:
     for extension, name in _EXTENSIONS:
         if lower.endswith(extension):
             return name
+    if lower.endswith(".msq"):
+        raise PointCloudFormatError(f"{path}: a .msq file is a mapsqueeze container, not a point cloud (decompress "
+                                    "reads one, compress writes one)")
     raise PointCloudFormatError(
         f"{path}: unknown point-cloud extension (known: {', '.join(ext for ext, _ in _EXTENSIONS)}); "
         "set the format explicitly"
