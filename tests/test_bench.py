@@ -185,6 +185,23 @@ def test_report_states_wins_losses_and_the_target_per_cloud():
     assert "| map | 100,000 | mapsqueeze | **0.100: 0.70 / +0.05** | 0.400: 0.90 / -0.10 |" in lines
 
 
+def test_report_names_the_codecs_of_a_partial_front():
+    """A run of fewer classical codecs is compared with the front of those, and the report says which ran: not
+    "the full classical front" of codecs that never ran."""
+    from mapsqueeze.benchmark.fronts import classical_codecs
+    from mapsqueeze.benchmark.report import markdown_report
+
+    rows = [_row("map", "octree", "leaf_m=0.4", 0.1, 0.10, iou=0.40), _row("map", "octree", "leaf_m=0.2", 0.4, 0.05),
+            _row("map", "mapsqueeze", "e1,q", 0.2, 0.07, iou=0.45)]
+    report = markdown_report(rows)
+    not_run = ", ".join(codec for codec in classical_codecs() if codec != "octree")
+    assert "full classical front" not in report
+    assert report.count(f"the classical front of octree only ({not_run} not run)") == 3
+    assert report.count("the classical front of") == 3
+    every = [_row("map", codec, "x", 0.3, 0.2) for codec in classical_codecs()]
+    assert markdown_report(rows + every).count(f"the full classical front ({', '.join(classical_codecs())})") == 3
+
+
 def test_size_band_comparison_groups_clouds_by_point_count():
     from mapsqueeze.benchmark.fronts import Comparison
     from mapsqueeze.benchmark.report import size_band_comparison

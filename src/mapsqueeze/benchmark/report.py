@@ -66,12 +66,23 @@ def _verdict(c: Comparison) -> str:
     return f"D_e {d_e}, IoU {iou}; target {'met' if meets_target(c) else 'missed'}"
 
 
-def front_table(comparisons: list[Comparison]) -> list[str]:
-    """Every learned row against the full classical front of its cloud at the same bpp, per metric."""
+def front_name(rows: list[Row]) -> str:
+    """The classical front these rows make: "the full classical front (codecs)" when every registered baseline ran,
+    else the codecs that ran and those that did not (a front of fewer codecs is easier to beat)."""
+    registered = classical_codecs()
+    ran = [codec for codec in registered if any(r.codec == codec for r in rows)]
+    if len(ran) == len(registered):
+        return f"the full classical front ({', '.join(ran)})"
+    missing = [codec for codec in registered if codec not in ran]
+    return f"the classical front of {', '.join(ran) or 'no codec'} only ({', '.join(missing)} not run)"
+
+
+def front_table(comparisons: list[Comparison], front: str) -> list[str]:
+    """Every learned row against `front` (`front_name`) of its cloud at the same bpp, per metric."""
     if not comparisons:
         return []
-    lines = ["", f"Against the full classical front ({', '.join(classical_codecs())}: every setting, Pareto front per "
-             "metric, log-bpp interpolation) of the same cloud at the same bpp. D_e and D_perp ratio: below 1 is "
+    lines = ["", f"Against {front}: every setting, Pareto front per "
+             "metric, log-bpp interpolation, of the same cloud at the same bpp. D_e and D_perp ratio: below 1 is "
              f"better; IoU difference: above 0 is better. Target: D_e ratio <= {TARGET_D_E_RATIO} and IoU difference "
              ">= 0.", "",
              "| cloud | points | codec | setting | bpp | D_e (m) | front D_e (m) | D_e ratio | D_perp ratio | IoU | "
@@ -88,14 +99,14 @@ def front_table(comparisons: list[Comparison]) -> list[str]:
     return lines
 
 
-def wins_table(comparisons: list[Comparison]) -> list[str]:
-    """Per learned setting: clouds where it beats the front per metric, and where it meets the target."""
+def wins_table(comparisons: list[Comparison], front: str) -> list[str]:
+    """Per learned setting: clouds where it beats `front` per metric, and where it meets the target."""
     groups: dict[tuple[str, str], list[Comparison]] = {}
     for c in comparisons:
         groups.setdefault((c.row.codec, c.row.setting), []).append(c)
     if not groups:
         return []
-    lines = ["", "Wins and losses against the full classical front per setting (clouds where it is better at equal "
+    lines = ["", f"Wins and losses against {front} per setting (clouds where it is better at equal "
              "bpp / clouds inside the front's bpp range); target rows: clouds of "
              f"{TARGET_MIN_POINTS:,} points or more at {TARGET_BPP_RANGE[0]}-{TARGET_BPP_RANGE[1]} bpp.", "",
              "| codec | setting | D_e better | D_perp better | IoU better | mean D_e ratio | mean IoU difference | "
@@ -111,9 +122,9 @@ def wins_table(comparisons: list[Comparison]) -> list[str]:
     return lines
 
 
-def margins_table(comparisons: list[Comparison]) -> list[str]:
+def margins_table(comparisons: list[Comparison], front: str) -> list[str]:
     """Compact: one line per cloud and codec, one column per setting: bpp, D_e ratio and IoU difference against
-    the full classical front (bold where the target is met)."""
+    `front` (bold where the target is met)."""
     settings = list(dict.fromkeys(c.row.setting for c in comparisons))
     cells: dict[tuple[str, int, str], dict[str, str]] = {}
     for c in comparisons:
@@ -123,7 +134,7 @@ def margins_table(comparisons: list[Comparison]) -> list[str]:
         cells.setdefault((r.cloud, r.n_points, r.codec), {})[r.setting] = f"**{text}**" if meets_target(c) else text
     if not cells:
         return []
-    lines = ["", "Margins per cloud: bpp: D_e ratio / IoU difference against the full classical front at that bpp "
+    lines = ["", f"Margins per cloud: bpp: D_e ratio / IoU difference against {front} at that bpp "
              "(bold: target met).", "",
              "| cloud | points | codec | " + " | ".join(settings) + " |", "|---" * (3 + len(settings)) + "|"]
     for (cloud, n_points, codec), by_setting in cells.items():
@@ -181,8 +192,9 @@ def reference_comparison(rows: list[Row]) -> list[str]:
 
 def markdown_report(rows: list[Row]) -> str:
     """The whole results.md text."""
-    comparisons = compare(rows)
-    lines = [*summary_table(rows), *wins_table(comparisons), *margins_table(comparisons), *front_table(comparisons),
+    comparisons, front = compare(rows), front_name(rows)
+    lines = [*summary_table(rows), *wins_table(comparisons, front), *margins_table(comparisons, front),
+             *front_table(comparisons, front),
              *size_band_comparison(comparisons), *reference_comparison(rows)]
     return "\n".join(lines) + "\n"
 
