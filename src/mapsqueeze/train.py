@@ -28,6 +28,7 @@ from mapsqueeze.errors import MapsqueezeError, ModelError
 from mapsqueeze.geometry.threads import set_threads
 from mapsqueeze.model import Autoencoder, ModelConfig, build_model, load_network, save_model
 from mapsqueeze.model.config import DECODING_SETTINGS, SAME_DECODER_KEY
+from mapsqueeze.model.devices import torch_device
 from mapsqueeze.model.loss import chamfer_loss, depoco_loss, mean_distance_loss
 
 OBJECTIVES = {"chamfer": "chamfer_m2", "mean-distance": "mean_distance_m"}
@@ -224,19 +225,21 @@ class _Process:
 
 def _join_process_group(device: str) -> tuple[_Process, torch.device]:
     """Join the process group torchrun (or train_processes) describes in RANK / WORLD_SIZE / LOCAL_RANK, if any:
-    nccl with one GPU per process for cuda, gloo otherwise. Returns this process's place and device."""
+    nccl with one GPU per process for cuda (bound to it: `device_id`), gloo otherwise. Returns this process's place
+    and device; MapsqueezeError for a device this machine lacks (`torch_device`)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
+    dev = torch_device(device, int(os.environ.get("LOCAL_WORLD_SIZE", world)))
     if world <= 1:
-        return _Process(), torch.device(device)
+        return _Process(), dev
     import torch.distributed as dist
 
     process = _Process(int(os.environ["RANK"]), world, int(os.environ.get("LOCAL_RANK", "0")))
-    dev = torch.device(device)
     if dev.type == "cuda":
         dev = torch.device("cuda", process.local_rank)
         torch.cuda.set_device(dev)
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+        cuda = dev.type == "cuda"
+        dist.init_process_group("nccl" if cuda else "gloo", device_id=dev if cuda else None)
     return process, dev
 
 
@@ -339,7 +342,9 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
     state_path = out_dir / "last" / "train_state.pt"
     start_epoch, step, best = 0, 0, math.inf
     if resume and state_path.is_file():
-        state = torch.load(state_path, map_location=dev, weights_only=True)
+        # On the CPU: the optimiser's load_state_dict moves its moments to the parameters' device and keeps its
+        # step counts on the CPU, as a run that did not resume has them.
+        state = torch.load(state_path, map_location="cpu", weights_only=True)
         run = (state.get("objective", "chamfer"), bool(state.get("encoder_only", False)))  # older states: the paper's
         if run != (cfg.objective, cfg.encoder_only):
             raise MapsqueezeError(f"{out_dir} holds a run of objective {run[0]}{', encoder only' * run[1]}: resume it "
@@ -471,6 +476,7 @@ def train_processes(nproc: int, dataset: Path, out_dir: Path, model_config: Mode
 
     if nproc < 1:
         raise MapsqueezeError(f"--nproc must be at least 1, got {nproc}")
+    torch_device(device, nproc)  # a device the processes cannot have fails here, once
     with socket.socket() as probe:  # a free port for the process group's rendezvous
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]

@@ -46,11 +46,14 @@ class CompressionModel:
 
     @property
     def network(self):
-        """The torch `Autoencoder` of these weights on `device`, in eval mode (imports torch)."""
+        """The torch `Autoencoder` of these weights on `device`, in eval mode (imports torch); MapsqueezeError when
+        this machine lacks the device (`devices.torch_device`)."""
         if self._network is None:
             from mapsqueeze.model.checkpoint import network_from_tensors
+            from mapsqueeze.model.devices import torch_device
 
-            self._network = network_from_tensors(self.config, self.tensors).to(self.device).eval()
+            device = torch_device(self.device)
+            self._network = network_from_tensors(self.config, self.tensors).to(device).eval()
         return self._network
 
     def on_cpu(self) -> CompressionModel:

@@ -7,6 +7,7 @@ needs no torch; the two give the same rate points within float32 rounding (tests
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import numpy as np
 import torch
@@ -25,43 +26,44 @@ class _Adam:
         self.groups = [(p, lr, torch.zeros_like(p), torch.zeros_like(p), torch.tensor(0.0)) for p, lr in groups]
 
     @torch.no_grad()
-    def step(self):
-        """One update from the tensors' .grad, which it then clears."""
-        for p, lr, mean, mean_sq, count in self.groups:
-            adam([p], [p.grad], [mean], [mean_sq], [], [count], foreach=False, capturable=False, differentiable=False,
-                 fused=None, grad_scale=None, found_inf=None, has_complex=False, amsgrad=False, beta1=ADAM_BETAS[0],
-                 beta2=ADAM_BETAS[1], lr=lr, weight_decay=0.0, eps=ADAM_EPS, maximize=False)
-            p.grad = None
+    def step(self, gradients: tuple[torch.Tensor, ...]):
+        """One update of each tensor by its gradient (in the groups' order). The step counts stay on the CPU, as
+        torch.optim.Adam keeps them."""
+        for (p, lr, mean, mean_sq, count), gradient in zip(self.groups, gradients, strict=True):
+            adam([p], [gradient], [mean], [mean_sq], [], [count], foreach=False, capturable=False,
+                 differentiable=False, fused=None, grad_scale=None, found_inf=None, has_complex=False, amsgrad=False,
+                 beta1=ADAM_BETAS[0], beta2=ADAM_BETAS[1], lr=lr, weight_decay=0.0, eps=ADAM_EPS, maximize=False)
 
 
-@contextlib.contextmanager
-def _frozen(module: torch.nn.Module):
-    """No gradients for the module's parameters inside the block (flags restored after)."""
-    flags = [p.requires_grad for p in module.parameters()]
-    try:
-        for p in module.parameters():
-            p.requires_grad_(False)
-        yield module
-    finally:
-        for p, flag in zip(module.parameters(), flags):
-            p.requires_grad_(flag)
+_deterministic_lock = threading.Lock()
+_deterministic_users = 0
+_settings_before = (False, False)
 
 
 @contextlib.contextmanager
 def _deterministic(device: torch.device):
     """On a GPU, torch's deterministic kernels inside the block (the backward of a gather with repeated indices
     otherwise accumulates atomically, and the steps amplify that into different files); kernels without a
-    deterministic version only warn. Both of torch's settings are restored after. Nothing on the CPU, where the
-    loss's gathers are deterministic already and the first call would import torch._inductor (~2.6 s)."""
+    deterministic version only warn. torch's setting is global: blocks of several threads (a pool of tile workers)
+    share it, and the last one out restores what the first one found. Nothing on the CPU, where the loss's gathers
+    are deterministic already and the first call would import torch._inductor (~2.6 s)."""
+    global _deterministic_users, _settings_before
     if device.type == "cpu":
         yield
         return
-    previous = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    with _deterministic_lock:
+        if _deterministic_users == 0:
+            _settings_before = (torch.are_deterministic_algorithms_enabled(),
+                                torch.is_deterministic_algorithms_warn_only_enabled())
+            torch.use_deterministic_algorithms(True, warn_only=True)
+        _deterministic_users += 1
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
+        with _deterministic_lock:
+            _deterministic_users -= 1
+            if _deterministic_users == 0:
+                torch.use_deterministic_algorithms(_settings_before[0], warn_only=_settings_before[1])
 
 
 def refine_embedding_torch(decoder: torch.nn.Module, target: torch.Tensor, points: torch.Tensor,
@@ -69,7 +71,8 @@ def refine_embedding_torch(decoder: torch.nn.Module, target: torch.Tensor, point
                            ) -> tuple[torch.Tensor, torch.Tensor]:
     """`steps` Adam steps on (points, features), normalised tensors on the decoder's device, towards the lowest D_e
     of decoder(points, features) against `target` (N, 3), its distances less `dead_zone` (`refine.distance_gradient`).
-    Returns the refined (points, features), detached."""
+    Returns the refined (points, features), detached. The decoder is left as it is: the gradients are taken with
+    respect to the embedding alone (`torch.autograd.grad`), so threads may refine with one decoder at once."""
     if steps < 0:
         raise ValueError(f"refinement steps must be >= 0, got {steps}")
     if steps == 0 or len(points) == 0 or len(target) == 0:
@@ -79,9 +82,9 @@ def refine_embedding_torch(decoder: torch.nn.Module, target: torch.Tensor, point
     shift = torch.zeros_like(points, requires_grad=True)
     refined = features.detach().clone().requires_grad_(True)
     optimiser = _Adam([(refined, FEATURE_LR), (shift, POSITION_LR)])
-    with _frozen(decoder), _deterministic(points.device), torch.enable_grad():
+    with _deterministic(points.device), torch.enable_grad():
         for _ in range(steps):
             output, _ = decoder(points + shift, refined)
-            mean_distance_loss(target, output, target_tree, dead_zone).backward()
-            optimiser.step()
+            optimiser.step(torch.autograd.grad(mean_distance_loss(target, output, target_tree, dead_zone),
+                                               (refined, shift)))
     return (points + shift).detach(), refined.detach()
