@@ -77,7 +77,7 @@ def clouds(real: Path) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
         "KITTI scan 000000": (kitti.points, {"reflectance": kitti.attributes["reflectance"]}),
         "KITTI 6-scan map": (map_points, {"reflectance": map_reflectance}),
         "nuScenes sweep": (nuscenes.points, {"intensity": nuscenes.attributes["intensity"],
-                                             "ring": nuscenes.attributes["ring"].astype(np.uint8)}),
+                                             "ring": nuscenes.attributes["ring"]}),  # uint8 (io.tables)
     }
 
 

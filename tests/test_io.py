@@ -53,7 +53,7 @@ def attributes_for(fmt: str, num_points: int) -> dict[str, np.ndarray]:
         return {"reflectance": rng.random(num_points).astype(np.float32)}
     if fmt == "pcd.bin":
         return {"intensity": rng.integers(0, 256, num_points).astype(np.float32),
-                "ring": rng.integers(0, 32, num_points).astype(np.float32)}
+                "ring": rng.integers(0, 32, num_points).astype(np.uint8)}  # written as float32, read as uint8
     return generic_attributes(num_points)
 
 
@@ -170,6 +170,27 @@ def test_float32_formats_refuse_utm_coordinates_and_leave_no_file(tmp_path, fmt)
         write_points(path, local_cloud() + UTM_OFFSET_M)
     assert_single_line_naming(excinfo, path)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_nuscenes_ring_is_read_as_whole_laser_numbers(tmp_path, tiny_model_dir):
+    """The ring column of a nuScenes sweep (float32 0..31, the laser of each point) is read as uint8, so that it is
+    coded as categories and decodes to ring numbers, not to quantised medians such as 4.84375; a column with a
+    fraction stays float32."""
+    import mapsqueeze
+
+    rng = np.random.default_rng(6)
+    points = rng.uniform(0.5, 3.5, (600, 3))
+    ring = np.floor(points[:, 2] * 8).astype(np.float32)  # 4..27, in layers as a spinning LiDAR's
+    write_points(tmp_path / "sweep.pcd.bin", points, attributes={"intensity": np.full(600, 7, np.float32),
+                                                                  "ring": ring})
+    cloud = read_point_cloud(tmp_path / "sweep.pcd.bin")
+    assert cloud.attributes["ring"].dtype == np.uint8 and cloud.attributes["intensity"].dtype == np.float32
+    np.testing.assert_array_equal(cloud.attributes["ring"], ring)
+    mapsqueeze.compress_file(tmp_path / "sweep.pcd.bin", tmp_path / "sweep.msq", model=tiny_model_dir)
+    decoded = mapsqueeze.decompress_cloud(tmp_path / "sweep.msq", model=tiny_model_dir)
+    assert set(np.unique(decoded.attributes["ring"])) <= set(ring.tolist())
+    write_points(tmp_path / "half.pcd.bin", points, attributes={"ring": ring + 0.5})
+    assert read_point_cloud(tmp_path / "half.pcd.bin").attributes["ring"].dtype == np.float32
 
 
 def test_extension_detection_and_format_override(tmp_path):

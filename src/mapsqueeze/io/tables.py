@@ -4,7 +4,8 @@
   the low 16 bits, instance id in the high 16) is read from `NAME.label` beside the scan or from
   `../labels/NAME.label` when the scan lies in a `velodyne` folder, as attributes `label` and `instance` (uint16);
   writing a cloud with `label` writes `NAME.label` beside the scan.
-- nuScenes .pcd.bin: float32 N x 5 (x, y, z, intensity, ring).
+- nuScenes .pcd.bin: float32 N x 5 (x, y, z, intensity, ring); ring, the laser of each point, is read as uint8
+  when every value is a whole number 0..255 (so that it is coded as categories), else as float32.
 - .npy: floating-point N x 3 (x, y, z in metres), or N x (3 + k): columns 3.. are attributes `column3`, `column4`,
   ... (names are not stored). An integer array is refused: its unit (millimetres, centimetres, voxel indices) cannot
   be told from the file.
@@ -23,6 +24,7 @@ from mapsqueeze.io.pointcloud import ChunkSource, CloudStats, PointCloud, row_ch
 KITTI_FIELDS = ("reflectance",)
 SEMANTIC_KITTI_FIELDS = ("label", "instance")
 NUSCENES_FIELDS = ("intensity", "ring")
+NUSCENES_WHOLE_FIELDS = ("ring",)
 _LABEL_LIMIT = 0xFFFF
 
 
@@ -62,14 +64,23 @@ def _label_table(scan: Path, n_points: int) -> np.ndarray | None:
     return np.memmap(path, dtype="<u4", mode="r")
 
 
+def _whole_bytes(column: np.ndarray) -> bool:
+    """Whether every value of a float column is a whole number from 0 to 255."""
+    return bool(np.all((column >= 0) & (column <= 255) & (column == np.floor(column))))
+
+
 def _table_chunks(path: Path, chunk_points: int, names: tuple[str, ...], label: str, with_labels: bool,
-                  attributes: bool) -> Iterator[PointCloud]:
+                  attributes: bool, whole: tuple[str, ...] = ()) -> Iterator[PointCloud]:
+    """The table's points and attribute columns in chunks; the columns named in `whole` as uint8 where every
+    value of the file's column is a whole number 0..255 (checked on the whole file, so every chunk has one dtype)."""
     table = _float32_table(path, len(names), label)
     names = names if attributes else ()
+    as_bytes = {name for column, name in enumerate(names) if name in whole and _whole_bytes(table[:, 3 + column])}
     labels = _label_table(path, len(table)) if with_labels and attributes else None
     label_parts = row_chunks(labels, chunk_points) if labels is not None else None
     for first, part in zip(range(0, len(table), chunk_points), row_chunks(table, chunk_points)):
-        values = {name: part[:, 3 + column].copy() for column, name in enumerate(names)}
+        values = {name: part[:, 3 + column].astype(np.uint8) if name in as_bytes else part[:, 3 + column].copy()
+                  for column, name in enumerate(names)}
         if label_parts is not None:
             packed = next(label_parts)
             values["label"] = (packed & _LABEL_LIMIT).astype(np.uint16)
@@ -82,7 +93,8 @@ def kitti_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iter
 
 
 def nuscenes_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterator[PointCloud]:
-    return _table_chunks(path, chunk_points, NUSCENES_FIELDS, "nuScenes .pcd.bin", False, attributes)
+    return _table_chunks(path, chunk_points, NUSCENES_FIELDS, "nuScenes .pcd.bin", False, attributes,
+                         NUSCENES_WHOLE_FIELDS)
 
 
 def _write_float32_table(path: Path, chunks: ChunkSource, stats: CloudStats, names: tuple[str, ...],
