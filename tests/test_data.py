@@ -398,6 +398,23 @@ def test_build_map_cli_without_poses_is_an_error(run_cli, tmp_path):
     assert code == 2 and err.startswith("error:") and "--estimate-poses" in err
 
 
+@pytest.mark.parametrize("option", [("--voxel", "0"), ("--spacing", "-1"), ("--dz", "nan"), ("--dz", "inf")])
+def test_build_map_cli_bad_values_are_one_error_line_and_no_dataset(run_cli, kitti_root, tmp_path, option):
+    """A bad voxel, spacing or box height is one `error:` line (no blank line before it) and writes no dataset."""
+    root, *_ = kitti_root
+    code, out, err = run_cli("build-map", str(root), "-o", str(tmp_path / "ds"), *option)
+    assert (code, out) == (2, "") and err.startswith("error: ") and err.count("\n") == 1, err
+    assert not (tmp_path / "ds").exists()
+
+
+def test_build_map_cli_prints_plain_lines_when_piped(run_cli, kitti_root, tmp_path):
+    root, *_ = kitti_root
+    code, _, err = run_cli("build-map", str(root), "-o", str(tmp_path / "ds"), "--voxel", "0.05")
+    n_points = read_dataset(tmp_path / "ds").records[0].n_points  # the one submap holds the whole map
+    assert code == 0 and err.splitlines() == [f"kitti-00: 2 scans -> {n_points} map points -> 1 submaps",
+                                              f"dataset: {tmp_path / 'ds'}"], err
+
+
 def test_build_map_and_tile_cli(run_cli, kitti_root, tmp_path):
     root, *_ = kitti_root
     code, _, err = run_cli("build-map", str(root), "-o", str(tmp_path / "ds"), "--voxel", "0.05")

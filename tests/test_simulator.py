@@ -224,3 +224,11 @@ def test_cli_rejects_unknown_sensor_with_one_error_line(monkeypatch, capsys, tmp
     assert capsys.readouterr().err.strip() == (
         "error: unknown sensor 'foo'; choose from hdl64, hdl32, vlp32c, os1_128, os2_128")
     assert not (tmp_path / "x").exists()
+
+
+def test_cli_simulate_prints_plain_lines_when_piped(run_cli, tmp_path):
+    """Piped, simulate prints its summary line only, not the last frame of a progress bar."""
+    code, out, err = run_cli("simulate", "-o", str(tmp_path / "sim"), "--sensor", "hdl32", "--preset", "highway",
+                             "--submaps", "1", "--scans", "1-1", "--seed", "0")
+    assert (code, out) == (0, "") and len(err.splitlines()) == 1, err
+    assert err.startswith("1 submaps (1 scenes) in ") and err.rstrip().endswith("manifest.json")

@@ -1,5 +1,6 @@
 """`mapsqueeze build-map` (scan sequences -> submap dataset) and `mapsqueeze tile` (one map -> grid tiles)."""
 
+import math
 from pathlib import Path
 
 import typer
@@ -66,6 +67,8 @@ def build_map(
         raise MapsqueezeError(f"--min-range ({min_range} m) must be below --max-range ({max_range} m)")
     if centers not in ("travelled", "coverage"):
         raise MapsqueezeError(f"--centers: expected travelled or coverage, got {centers!r}")
+    if not math.isfinite(dz):
+        raise MapsqueezeError(f"--dz must be a finite height in metres, got {dz}")
     sequences = open_sequences(scans_dir, poses, use_labels=labels)
     missing = [sequence.name for sequence in sequences if sequence.poses is None]
     if missing and not estimate:
@@ -73,7 +76,7 @@ def build_map(
     console = make_console(stderr=True)
     meta = {"min_range_m": min_range, "max_range_m": max_range, "voxel_size_m": voxel, "spacing_m": spacing,
             "size_m": list(box), "dz_m": dz, "centers": centers, "labels": labels}
-    with Progress(console=console, transient=True) as progress:
+    with Progress(console=console, transient=True, disable=not console.is_terminal) as progress:
         for sequence in sequences:
             if sequence.poses is None:
                 sequence = sequence.with_poses(estimate_poses(

@@ -94,7 +94,8 @@ def train_cmd(
     else:
         with Progress(TextColumn("epoch {task.fields[epoch]} step {task.completed}"), BarColumn(),
                       TextColumn("loss {task.fields[loss]:.5f}"), TimeElapsedColumn(), console=console,
-                      disable=os.environ.get("RANK", "0") != "0") as bar:  # under torchrun: process 0 reports
+                      disable=os.environ.get("RANK", "0") != "0" or not console.is_terminal) as bar:
+            # under torchrun process 0 reports; piped, no bar (the summary line below)
             task = bar.add_task("train", total=max_steps, epoch=0, loss=float("nan"))
             summary = train(dataset, out, model_config, cfg, device=device, resume=not no_resume, init=init,
                             progress=lambda e, s, l: bar.update(task, completed=s, epoch=e + 1, loss=l))

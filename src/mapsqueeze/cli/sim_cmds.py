@@ -63,7 +63,7 @@ def simulate(
     start = time.perf_counter()
     columns = (TextColumn("simulating"), BarColumn(), MofNCompleteColumn(), TextColumn("submaps"),
                TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=console) as progress:
+    with Progress(*columns, console=console, disable=not console.is_terminal) as progress:
         task = progress.add_task("simulate", total=submaps)
         manifest = simulate_dataset(out_dir, config, workers, lambda n: progress.advance(task, n))
     minutes = (time.perf_counter() - start) / 60
