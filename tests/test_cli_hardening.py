@@ -892,3 +892,19 @@ def test_eval_of_a_ground_truth_without_extent_gives_no_overlap_warning(run_cli,
     write_points(tmp_path / "rec.ply", np.tile([[1.0, 2.0, 3.0001], [1.0, 2.0, 2.9999]], (35, 1)))
     code, out, err = run_cli("eval", str(tmp_path / "gt.ply"), str(tmp_path / "rec.ply"), "--json")
     assert code == 0 and err == "" and json.loads(out)["d_e"] > 0
+
+
+@pytest.mark.parametrize("output", ["out.ply", "out.las"])
+def test_a_density_that_gives_no_points_is_named_not_a_bbox(run_cli, map_file, tiny_model_dir, tmp_path, output):
+    """decompress --density so low that every tile decodes to no point says so; the message of an empty --bbox
+    stays for a bbox."""
+    msq = tmp_path / "map.msq"
+    mapsqueeze.compress_file(map_file, msq, model=tiny_model_dir)
+    code, out, err = run_cli("decompress", str(msq), "-o", str(tmp_path / output), "--model", str(tiny_model_dir),
+                             "--density", "1e-9")
+    assert (code, out) == (2, "") and err.count("\n") == 1 and "bbox" not in err and "a density of 1e-09 points per m^3" in err, err
+    far = ",".join(str(v) for v in [0, 0, 0, 1, 1, 1])
+    code, _, err = run_cli("decompress", str(msq), "-o", str(tmp_path / output), "--model", str(tiny_model_dir),
+                           "--bbox", far)
+    assert code == 2 and "the bbox holds no decoded points" in err
+    assert not (tmp_path / output).exists()

@@ -394,7 +394,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                     yield cloud.points
                     del cloud
             if not sizes:
-                raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
+                raise _nothing_to_write(input_path, bbox, density)
 
         float32_certain = float(np.abs(summary.bounds).max()) + 1.0 < FLOAT32_SAFE_ABS_M
         return write_ply_stream(Path(output_path), tiles(), float32_certain, lambda _: sizes[0] * summary.n_tiles)
@@ -413,13 +413,21 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
             for column in streams:
                 column.close()
         if os.path.getsize(spill_path) == 0:
-            raise InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
+            raise _nothing_to_write(input_path, bbox, density)
         n_points = os.path.getsize(spill_path) // 24
         attribute_paths = {spec.name: (os.path.join(spill, f"attribute{column}"), spec.dtype)
                            for column, spec in enumerate(specs)}
         metadata = schema.metadata if schema else {}
         return write_point_chunks(output_path, lambda: _spill_chunks(spill_path, attribute_paths, n_points, metadata),
                                   format)
+
+
+def _nothing_to_write(input_path, bbox, density: float | None) -> InvalidPointCloudError:
+    """The error of a decode with no point: the bbox holds none, or (without one) the density gives every tile none."""
+    if bbox is None and density is not None:
+        return InvalidPointCloudError(f"{input_path}: no points to write (a density of {density:g} points per m^3 "
+                                      "decodes every tile to no point)")
+    return InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
 
 
 def _spill_chunks(points_path: str, attribute_paths: dict[str, tuple[str, np.dtype]], n_points: int,
