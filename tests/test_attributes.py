@@ -224,3 +224,19 @@ def test_attribute_options_out_of_range_are_refused_without_attributes_too(tmp_p
                              "--attribute-voxel", str(voxel_m), "--attribute-step", str(relative_step))
     assert (code, out) == (2, "") and err.startswith(f"error: {message}") and err.count("\n") == 1
     assert not (tmp_path / "map.msq").exists()
+
+
+@pytest.mark.parametrize("name, dtype", [("reflectivity", np.uint16), ("t", np.uint32), ("signal", np.uint16),
+                                         ("near_ir", np.uint16), ("ambient", np.uint16), ("offset_time", np.uint32),
+                                         ("Intensity", np.uint16)])
+def test_integer_lidar_measurements_of_driver_pcds_are_continuous(name, dtype):
+    """Integer fields that Ouster and Livox drivers write (reflectivity, signal, near_ir, ambient; per-point time
+    t, offset_time), and intensity in any case, are measurements: coded as a quantised median, not as categories
+    (one palette entry per distinct value: 55x the bytes on an Ouster submap)."""
+    points, intensity, _, _ = street(3000, 1000)
+    values = (intensity * 1000).astype(dtype)
+    summary = mapsqueeze.info(mapsqueeze.compress(points, attributes={name: values}))
+    assert summary.attribute_summary().startswith(f"{name} ({np.dtype(dtype).name}, median"), \
+        summary.attribute_summary()
+    labels = mapsqueeze.info(mapsqueeze.compress(points, attributes={"label": values % 20}))
+    assert "majority" in labels.attribute_summary()

@@ -52,8 +52,10 @@ DEFAULT_RELATIVE_STEP = 1 / 32
 MIN_RELATIVE_STEP = 1e-6
 MIN_VOXEL_M = 0.01
 CONTINUOUS_NAMES = frozenset({"intensity", "reflectance", "red", "green", "blue", "nir", "gps_time", "time",
-                              "timestamp", "scan_angle", "range"})
-"""Integer attributes with these names are continuous (median, quantised); other integers are categorical."""
+                              "timestamp", "scan_angle", "range",
+                              "reflectivity", "signal", "near_ir", "ambient", "t", "offset_time"})
+"""Integer attributes with these names (in any case) are continuous (median, quantised); other integers are
+categorical. The second line: the integer measurements and per-point times of Ouster and Livox driver PCDs."""
 CONTINUOUS, CATEGORICAL, CONSTANT = 0, 1, 2
 CONSTANT_VERSION = 8
 """First container version whose schema may hold constant attributes (kind CONSTANT); written only by files that do."""
@@ -160,7 +162,7 @@ class AttributeSchema:
 
 
 def is_continuous(name: str, dtype: np.dtype) -> bool:
-    return dtype.kind == "f" or name in CONTINUOUS_NAMES
+    return dtype.kind == "f" or name.lower() in CONTINUOUS_NAMES
 
 
 def parse_selection(selection: str | list[str] | tuple[str, ...] | None, names: list[str]) -> list[str]:
