@@ -135,3 +135,126 @@ def test_training_on_a_device_this_machine_lacks_is_one_error_line(run_cli, data
     code, _, err = run_cli("train", str(dataset), "-o", str(tmp_path / "run"), "--max-steps", "1", *args)
     assert code == 2 and err.strip().startswith("error:") and message in err, err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "run").exists()
+
+
+@pytest.fixture
+def torch_passes(monkeypatch):
+    """Counts of the torch network's passes (`autoencoder.torch_encode`, `torch_refine`, `torch_decode`): the
+    branch a model on another device than the CPU takes."""
+    from mapsqueeze.model import autoencoder
+
+    counts = {}
+    for name in ("torch_encode", "torch_refine", "torch_decode"):
+        def counted(*args, _name=name, _pass=getattr(autoencoder, name), **kwargs):
+            counts[_name] = counts.get(_name, 0) + 1
+            return _pass(*args, **kwargs)
+
+        monkeypatch.setattr(autoencoder, name, counted)
+    return counts
+
+
+def _street(n: int = 6000, seed: int = 3) -> np.ndarray:
+    """A map of one 40 m tile (float64 metres)."""
+    return np.random.default_rng(seed).random((n, 3)) * [30, 30, 3]
+
+
+def test_the_api_loads_the_models_it_names_on_the_device(torch_passes):
+    """compress and decompress given a device: the default model, a rate target's e0..e3 and the model named in
+    the file run there (one worker: the simulation holds in this thread); the file decodes on the CPU."""
+    import mapsqueeze
+
+    points = _street()
+    with simulated_device() as device:
+        data = mapsqueeze.compress(points, refine_steps=1, workers=1, device=device)
+        assert torch_passes["torch_encode"] == 1 and torch_passes["torch_refine"] == 1
+        decodes = [torch_passes["torch_decode"]]  # the mode decision's
+        decoded = mapsqueeze.decompress(data, workers=1, device=device)
+        decodes.append(torch_passes["torch_decode"])
+        cloud = mapsqueeze.decompress_cloud(data, model="e1", workers=1, device=device)
+        decodes.append(torch_passes["torch_decode"])
+        assert decodes[0] >= 1 and decodes[0] < decodes[1] < decodes[2], decodes
+        encodes = torch_passes["torch_encode"]
+        mapsqueeze.compress(points, max_error=1.0, workers=1, device=device)
+        assert torch_passes["torch_encode"] - encodes == 4  # each of e0..e3 encodes the tile there
+    expected = mapsqueeze.decompress(data, workers=1)  # on the CPU, without torch's passes
+    assert decoded.shape == expected.shape == cloud.points.shape and np.abs(decoded - expected).max() < 1e-4
+    assert mapsqueeze.info(data).model_id == "e1"
+
+
+def test_a_loaded_model_runs_where_it_was_loaded_and_a_device_is_checked_before_any_work(tmp_path):
+    import mapsqueeze
+
+    with pytest.raises(MapsqueezeError, match="runs on 'cpu', not on device 'meta'"):
+        mapsqueeze.compress(_street(), model=load_model("e0"), device="meta")
+    with pytest.raises(MapsqueezeError, match="with a Dask cluster"):
+        mapsqueeze.decompress(b"not read", device="meta", dask_scheduler="local")
+    with pytest.raises(MapsqueezeError, match="unknown device 'gpu'"):
+        mapsqueeze.compress_file(tmp_path / "missing.ply", tmp_path / "out.msq", device="gpu")
+    assert not (tmp_path / "out.msq").exists()
+
+
+def test_the_command_line_compresses_and_decompresses_on_the_device(run_cli, tmp_path, torch_passes):
+    import mapsqueeze
+    from mapsqueeze.io import read_points, write_points
+
+    write_points(tmp_path / "map.ply", _street())
+    with simulated_device() as device:
+        code, _, err = run_cli("compress", str(tmp_path / "map.ply"), "-o", str(tmp_path / "map.msq"), "--model",
+                               "e0", "--workers", "1", "--device", device)
+        assert code == 0, err
+        code, _, err = run_cli("decompress", str(tmp_path / "map.msq"), "-o", str(tmp_path / "out.ply"),
+                               "--workers", "1", "--device", device)
+        assert code == 0, err
+    assert torch_passes["torch_encode"] == 1 and torch_passes["torch_decode"] >= 2  # the mode decision's, the decode
+    expected = mapsqueeze.decompress(tmp_path / "map.msq", workers=1)
+    decoded = read_points(tmp_path / "out.ply")
+    assert decoded.shape == expected.shape and np.abs(decoded - expected).max() < 1e-4
+
+
+def test_the_benchmark_runs_the_learned_codecs_on_the_device(tmp_path, torch_passes):
+    import json
+
+    from mapsqueeze.benchmark import run_benchmark
+    from mapsqueeze.io import write_points
+
+    write_points(tmp_path / "street.ply", _street())
+    with simulated_device() as device:
+        rows = run_benchmark([tmp_path / "street.ply"], ["mapsqueeze"], tmp_path / "out", models=["e0"],
+                             log=lambda m: None, device=device)
+    assert [r.setting for r in rows] == ["e0,q"] and rows[0].d_e < 1.0
+    assert torch_passes["torch_encode"] == 1 and torch_passes["torch_decode"] >= 2
+    assert json.loads((tmp_path / "out" / "run.json").read_text())["arguments"]["device"] == device
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+@pytest.mark.parametrize("command", ["compress", "decompress", "view", "bench", "demo"])
+def test_a_command_on_a_gpu_this_machine_lacks_is_one_error_line_and_no_output(run_cli, tmp_path, command):
+    import mapsqueeze
+    from mapsqueeze.io import write_points
+
+    write_points(tmp_path / "map.ply", _street(3000))
+    (tmp_path / "map.msq").write_bytes(mapsqueeze.compress(_street(3000), model="e0", workers=1))
+    out = tmp_path / "out"
+    cloud, msq = str(tmp_path / "map.ply"), str(tmp_path / "map.msq")
+    args = {"compress": (cloud, "-o", f"{out}.msq"), "decompress": (msq, "-o", f"{out}.ply"),
+            "view": (msq, "-o", f"{out}.html"), "bench": (cloud, "--codecs", "mapsqueeze", "-o", str(out)),
+            "demo": ("-o", str(out))}[command]
+    code, _, err = run_cli(command, *args, "--device", "cuda")
+    assert code == 2 and err.strip().startswith("error:") and "device 'cuda' is not available" in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.msq", "map.ply"] and not out.exists()
+
+
+def test_device_cpu_is_the_default_byte_for_byte(run_cli, tmp_path):
+    from mapsqueeze.io import write_points
+
+    write_points(tmp_path / "map.ply", _street())
+    for name, flags in (("plain", ()), ("cpu", ("--device", "cpu"))):
+        code, _, err = run_cli("compress", str(tmp_path / "map.ply"), "-o", str(tmp_path / f"{name}.msq"),
+                               "--model", "e0", "--workers", "1", *flags)
+        assert code == 0, err
+        code, _, err = run_cli("decompress", str(tmp_path / f"{name}.msq"), "-o", str(tmp_path / f"{name}.ply"),
+                               *flags)
+        assert code == 0, err
+    for suffix in (".msq", ".ply"):
+        assert (tmp_path / f"plain{suffix}").read_bytes() == (tmp_path / f"cpu{suffix}").read_bytes()

@@ -38,7 +38,8 @@ from mapsqueeze.cli import main
 from mapsqueeze.io import write_points
 rng = np.random.default_rng(0)
 write_points(sys.argv[1], np.c_[rng.random((3000, 2)) * 30, rng.normal(1, 0.05, 3000)])
-sys.argv = ["mapsqueeze", "compress", sys.argv[1], "-o", sys.argv[2], "--model", "e0", "--workers", "1"]
+sys.argv = ["mapsqueeze", "compress", sys.argv[1], "-o", sys.argv[2], "--model", "e0", "--workers", "1",
+            "--device", "cpu"]
 try:
     main()
 except SystemExit as exit:
@@ -66,8 +67,8 @@ def test_the_typer_range_in_pyproject_is_the_versions_the_command_line_runs_on()
 
 
 def test_a_piped_compress_loads_neither_pydantic_nor_rich_nor_other_commands(tmp_path):
-    """`mapsqueeze compress` with its output piped (as a script runs it): only the compress command's modules, no
-    pydantic (typer >= 0.29 coerces every parameter through it: ~0.1 CPU-s), no rich (~0.05 CPU-s: its lines are
+    """`mapsqueeze compress --device cpu` with its output piped (as a script runs it): no torch, only the compress
+    command's modules, no pydantic (typer >= 0.29 coerces every parameter through it: ~0.1 CPU-s), no rich (~0.05 CPU-s: its lines are
     plain text), and none of the simulator, the viewer or the data tools' modules the other commands use."""
     result = subprocess.run([sys.executable, "-c", _PIPED_COMPRESS_PROBE, str(tmp_path / "map.ply"),
                              str(tmp_path / "map.msq")], capture_output=True, text=True)
@@ -76,7 +77,7 @@ def test_a_piped_compress_loads_neither_pydantic_nor_rich_nor_other_commands(tmp
     assert printed[-1].startswith(f"wrote {tmp_path / 'map.msq'}: 3,000 points in 1 tile")
     loaded = set(loaded.split())
     assert "mapsqueeze.cli.codec_cmds" in loaded and (tmp_path / "map.msq").stat().st_size
-    assert not {name for name in loaded if name.split(".")[0] in ("pydantic", "rich")}
+    assert not {name for name in loaded if name.split(".")[0] in ("pydantic", "rich", "torch")}
     assert not {"mapsqueeze.cli.sim_cmds", "mapsqueeze.cli.view_cmds", "mapsqueeze.cli.data_cmds",
                 "mapsqueeze.cli.eval_cmds", "mapsqueeze.data", "mapsqueeze.view"} & loaded
 

@@ -6,6 +6,7 @@
     cloud = mapsqueeze.decompress_cloud(data)            # -> PointCloud: points, attributes, metadata
     mapsqueeze.compress_file("map.ply", "map.msq")
     mapsqueeze.decompress_file("map.msq", "out.las", bbox=(x0, y0, z0, x1, y1, z1))
+    data = mapsqueeze.compress(points, device="cuda")     # the network on a GPU (default "cpu": no torch)
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from mapsqueeze.codec.decompress import (
 from mapsqueeze.codec.modes import RateTarget
 from mapsqueeze.codec.embedding import Precision
 from mapsqueeze.codec.octreetile import octree_leaf_m
-from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.io.atomic import remove_dead_work_dirs
 from mapsqueeze.io.ply import write_ply_stream
 from mapsqueeze.io.pointcloud import FLOAT32_SAFE_ABS_M
@@ -73,12 +74,35 @@ RATE_TARGET_MODELS = ("e0", "e1", "e2", "e3")
 """The models a rate target (max_error / bpp) chooses from when no model is given."""
 
 
-def _model(model):
-    """A CompressionModel as is, or load one by shipped name or directory."""
+def _device(device: str, model, dask_scheduler: str | None) -> str:
+    """The checked name of the device the network runs on (`model.devices.device_name`; "cpu" imports no torch).
+    MapsqueezeError for a device this machine lacks, for a device other than the CPU with a Dask cluster, and for
+    one other than a given CompressionModel's own."""
+    if str(device) == "cpu":
+        return "cpu"
+    from mapsqueeze.model.devices import device_name
+
+    name = device_name(device)
+    if name == "cpu":
+        return name
+    if dask_scheduler is not None:
+        raise MapsqueezeError(f"device {name!r} with a Dask cluster: the network would run on the cluster's workers, "
+                              "which may have no GPU; give a device or a cluster (--dask-scheduler), not both")
+    if model is not None and not isinstance(model, (str, os.PathLike)):
+        own = device_name(getattr(model, "device", "cpu"))
+        if own != name:
+            raise MapsqueezeError(f"the given model {getattr(model, 'model_id', '')!r} runs on {own!r}, not on device "
+                                  f"{name!r}: give its name or directory, or load it there "
+                                  f"(load_model(name, device={name!r}))")
+    return name
+
+
+def _model(model, device: str = "cpu"):
+    """A CompressionModel as is, or load one by shipped name or directory on `device` (a `_device` name)."""
     if isinstance(model, (str, os.PathLike)):
         from mapsqueeze.model import load_model
 
-        return load_model(model)
+        return load_model(model, device)
     return model
 
 
@@ -87,11 +111,13 @@ def _target(max_error: float | None, bpp: float | None, fallback: bool, post_fil
     return RateTarget(max_error, bpp, fallback, post_filter)
 
 
-def _models(model, target: RateTarget):
-    """The model to compress with, or under a rate target without a model, the list of shipped ones to pick from."""
+def _models(model, target: RateTarget, device: str):
+    """The model to compress with, or under a rate target without a model, the list of shipped ones to pick from,
+    loaded on `device` (a `_device` name) where given by name."""
     if model is None:
-        return [_model(name) for name in RATE_TARGET_MODELS] if target.given else _model(DEFAULT_MODEL)
-    return _model(model)
+        return ([_model(name, device) for name in RATE_TARGET_MODELS] if target.given
+                else _model(DEFAULT_MODEL, device))
+    return _model(model, device)
 
 
 def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAULT_PRECISION, *,
@@ -99,7 +125,7 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
              fallback: bool = True, post_filter: str = "patch", progress: ProgressCallback | None = None,
              keep_zero_points: bool = False, attributes: dict[str, np.ndarray] | None = None, metadata: dict | None = None,
              attribute_options: AttributeOptions = AttributeOptions(),
-             workers: int | None = None, dask_scheduler: str | None = None) -> bytes:
+             workers: int | None = None, dask_scheduler: str | None = None, device: str = "cpu") -> bytes:
     """(N, 3) float64 map points (metres, e.g. UTM) -> .msq bytes.
 
     model: shipped name (e0..e3), model directory or loaded CompressionModel (default e1; with max_error or bpp
@@ -121,7 +147,14 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
     edge, step); metadata: JSON-serialisable file metadata (e.g. `PointCloud.metadata` of a LAS file) stored in the
     file. workers: threads encoding tiles in parallel (None: one per core); dask_scheduler: run the tiles on a
     Dask cluster at this address instead ("local": a LocalCluster of `workers` processes). The bytes are the same.
+    device: where the models given by name (or the default ones) run the network, its encoder, the refinement
+    steps and the decoder the mode decision measures: "cpu" (numpy without torch: the same bytes on any machine),
+    "cuda" or "cuda:N" (torch on that GPU, refinement through its autograd: the same rate points within float32
+    rounding, not the same bytes). A loaded CompressionModel runs where it was loaded; a device other than "cpu"
+    must be its own. MapsqueezeError before any work for a device this machine lacks, and for one other than
+    "cpu" with dask_scheduler (a cluster's workers may have no GPU).
     """
+    device = _device(device, model, dask_scheduler)
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     if not keep_zero_points:
         points = validate_points(points, name="map")
@@ -131,7 +164,7 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
             nonzero = points.any(axis=1)
             points, attributes = kept, {name: values[nonzero] for name, values in attributes.items()}
     target = _target(max_error, bpp, fallback, post_filter)
-    return compress_map(points, _models(model, target), precision, progress=progress, refine_steps=refine_steps,
+    return compress_map(points, _models(model, target, device), precision, progress=progress, refine_steps=refine_steps,
                         attributes=attributes, metadata=metadata, attribute_options=attribute_options,
                         workers=workers, dask_scheduler=dask_scheduler, target=target)
 
@@ -140,7 +173,7 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
                density: float | None = None, n_points: int | None = None,
                progress: ProgressCallback | None = None,
                max_tile_points: int = DEFAULT_MAX_TILE_POINTS, workers: int | None = None,
-               dask_scheduler: str | None = None) -> np.ndarray:
+               dask_scheduler: str | None = None, device: str = "cpu") -> np.ndarray:
     """.msq bytes (or a .msq file path) -> (K, 3) float64 world points.
 
     By default every tile decodes to the count its file states: the native count of its coding (the network's
@@ -150,20 +183,23 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
     choose another density. model defaults to the shipped model named in the file; its weights must match the
     file's. A tile asked for more than max_tile_points points raises DecodeLimitError (a crafted file may claim
     millions of points in a few bytes). workers: threads decoding tiles in parallel (None: one per core; 1: this
-    thread); dask_scheduler: as in `compress`.
+    thread); dask_scheduler, device: as in `compress` (the decoder runs there; a file decodes on any device, the
+    points within float32 rounding of the CPU's).
     """
+    device = _device(device, model, dask_scheduler)
     tiles = list(iter_decoded_tiles(data, model, bbox, density, n_points, progress, max_tile_points,
-                                    workers=workers, dask_scheduler=dask_scheduler))
+                                    workers=workers, dask_scheduler=dask_scheduler, device=device))
     return np.concatenate(tiles) if tiles else np.zeros((0, 3), dtype=np.float64)
 
 
 def decompress_cloud(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
                      density: float | None = None, n_points: int | None = None,
                      progress: ProgressCallback | None = None, workers: int | None = None,
-                     dask_scheduler: str | None = None) -> PointCloud:
+                     dask_scheduler: str | None = None, device: str = "cpu") -> PointCloud:
     """As `decompress`, with every attribute coded in the file (dtypes restored) and the file's metadata."""
+    device = _device(device, model, dask_scheduler)
     tiles = list(iter_decoded_clouds(data, model, bbox, density, n_points, progress, workers=workers,
-                                     dask_scheduler=dask_scheduler))
+                                     dask_scheduler=dask_scheduler, device=device))
     if not tiles:
         return PointCloud(np.zeros((0, 3), dtype=np.float64))
     return PointCloud(np.concatenate([tile.points for tile in tiles]),
@@ -301,7 +337,7 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
                   keep_zero_points: bool = False,
                   format: str | None = None,
                   attribute_options: AttributeOptions = AttributeOptions(), workers: int | None = None,
-                  dask_scheduler: str | None = None) -> ContainerInfo:
+                  dask_scheduler: str | None = None, device: str = "cpu") -> ContainerInfo:
     """Read a point-cloud file in chunks, compress it, write the .msq atomically; returns the written file's summary
     (with `zero_points_dropped`, the points at exactly (0, 0, 0) left out unless keep_zero_points, and
     `nan_points_dropped`, a PCD's points with a NaN coordinate, which the reader leaves out).
@@ -309,14 +345,15 @@ def compress_file(input_path: str | os.PathLike, output_path: str | os.PathLike,
     format: the input's format (one of `mapsqueeze.io.SUPPORTED_FORMATS`; default from the extension). The output
     path is checked before any work. Memory is bounded by a chunk of the input and one tile (see `compress_chunks`),
     not by the map's size; the bytes are those `compress` gives for the file's points, attributes and metadata
-    (`read_point_cloud`), coded as attribute_options says; workers / dask_scheduler as in `compress` (one tile in
-    memory per worker).
+    (`read_point_cloud`), coded as attribute_options says; workers / dask_scheduler / device as in `compress` (one
+    tile in memory per worker).
     """
+    device = _device(device, model, dask_scheduler)
     precision = precision if isinstance(precision, Precision) else Precision.parse(precision)
     format_name(input_path, format)
     check_output_path(output_path, inputs=(input_path,))
     target = _target(max_error, bpp, fallback, post_filter)
-    model = _models(model, target)
+    model = _models(model, target, device)
     dropped = [0, 0]  # points at (0, 0, 0), points with a NaN coordinate
 
     def chunks():
@@ -355,7 +392,8 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                     bbox: Sequence[float] | None = None, density: float | None = None, n_points: int | None = None,
                     progress: ProgressCallback | None = None, spill_dir: str | os.PathLike | None = None,
                     max_tile_points: int = DEFAULT_MAX_TILE_POINTS, format: str | None = None,
-                    workers: int | None = None, dask_scheduler: str | None = None, attributes: bool = True) -> int:
+                    workers: int | None = None, dask_scheduler: str | None = None, attributes: bool = True,
+                    device: str = "cpu") -> int:
     """Decode a .msq file (seeking to the tiles needed) and write the points, their attributes and the file's
     metadata atomically; returns the count.
 
@@ -366,8 +404,9 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
     (`io.ply.write_ply_stream`); other outputs go through spill files (in spill_dir, default the system's temporary
     directory; 24 bytes a point plus the attributes), which are then written out chunk by chunk: memory stays
     bounded by a tile and a chunk for the binary formats (see `mapsqueeze.io.write_point_chunks`); workers /
-    dask_scheduler as in `compress` (one tile in memory per worker).
+    dask_scheduler / device as in `compress` (one tile in memory per worker).
     """
+    device = _device(device, model, dask_scheduler)
     output_format = format_name(output_path, format)  # an unknown format or an unwritable path fails before decoding
     check_output_path(output_path, inputs=(input_path,))
     summary = info(input_path)
@@ -378,7 +417,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
         sizes = []  # points of each tile written
 
         def tiles() -> Iterator[np.ndarray]:
-            options = dict(attributes=False, workers=workers, dask_scheduler=dask_scheduler)
+            options = dict(attributes=False, workers=workers, dask_scheduler=dask_scheduler, device=device)
             if bbox is None:  # each tile placed in the world part by part
                 for tile in iter_tile_points(input_path, model, None, density, n_points, progress, max_tile_points,
                                              **options):
@@ -405,7 +444,7 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
             with open(spill_path, "wb") as stream:
                 for tile in iter_decoded_clouds(input_path, model, bbox, density, n_points, progress,
                                                 max_tile_points, attributes=attributes, workers=workers,
-                                                dask_scheduler=dask_scheduler):
+                                                dask_scheduler=dask_scheduler, device=device):
                     stream.write(np.ascontiguousarray(tile.points, dtype="<f8").data)
                     for spec, column in zip(specs, streams):
                         column.write(np.ascontiguousarray(tile.attributes[spec.name], dtype=spec.dtype).data)

@@ -56,14 +56,15 @@ def run_case(name: str, points: np.ndarray, model, out_dir: Path, refine_steps: 
     return DemoResult(name, len(points), len(data), len(decoded), metrics, t1 - t0, t2 - t1)
 
 
-def run_demo(model_name: str, out_dir: Path, progress=print, refine_steps: int = 0) -> list[DemoResult]:
-    """The simulated map and the real KITTI submap with the paper's encoder; with refine_steps > 0 the KITTI submap
-    once more with that much encode-time refinement."""
+def run_demo(model_name: str, out_dir: Path, progress=print, refine_steps: int = 0, device: str = "cpu"
+             ) -> list[DemoResult]:
+    """The simulated map and the real KITTI submap with the paper's encoder, the network on `device`
+    (`load_model`); with refine_steps > 0 the KITTI submap once more with that much encode-time refinement."""
     from mapsqueeze.io import read_points, write_points
     from mapsqueeze.model import load_model
 
+    model = load_model(model_name, device)
     out_dir.mkdir(parents=True, exist_ok=True)
-    model = load_model(model_name)
     progress(f"model {model.model_id} (r_s = {model.config.subsampling_dist:g} m)")
     progress("simulating a street map (HDL-64E, 4 submaps) ...")
     sim = simulated_map()

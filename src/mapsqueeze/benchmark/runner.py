@@ -60,8 +60,8 @@ def reusable_rows(rows: list[Row], variants: list[Variant], log: Callable[[str],
 def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: list[str] | None = None,
                   precision: str = "q", split: str = "test", log: Callable[[str], None] = print,
                   progress: Callable[[str], None] | None = None, fresh: bool = False,
-                  refine: tuple[int, ...] = (0,), every: int = 1, on_decoded: DecodedCallback | None = None
-                  ) -> list[Row]:
+                  refine: tuple[int, ...] = (0,), every: int = 1, on_decoded: DecodedCallback | None = None,
+                  device: str = "cpu") -> list[Row]:
     """Run every variant on every cloud; write results.csv, run.json, results.md, rd.png (+ rd_<cloud>.png).
 
     Results already in out_dir/results.csv are kept and their (cloud, codec, setting) not run again when made
@@ -69,7 +69,8 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
     starts over. refine: the encode-time refinement steps the learned codecs run at (each a setting of its own).
     every=N runs on every N-th cloud only (the first, the (N+1)-th, ...; names unchanged, so a subset can be added
     to a full run's folder). on_decoded(cloud name, codec, setting, compressed bytes, original points, decoded points,
-    metrics) is called after each result (the CLI writes viewer pages with it).
+    metrics) is called after each result (the CLI writes viewer pages with it). device: where the learned codecs'
+    networks run (`build_variants`; run.json records it, the rows kept from earlier runs may come from another).
     """
     from mapsqueeze.codec.compress import check_refine_steps
     from mapsqueeze.geometry.normals import normals_pca
@@ -82,10 +83,10 @@ def run_benchmark(inputs: list[Path], codecs: list[str], out_dir: Path, models: 
         raise MapsqueezeError("refine: give at least one number of refinement steps (0: the paper's encoder)")
     for steps in refine:
         check_refine_steps(steps)
+    variants = build_variants(codecs, models or [], precision, log, refine, device)
     out_dir.mkdir(parents=True, exist_ok=True)
-    variants = build_variants(codecs, models or [], precision, log, refine)
     arguments = {"inputs": [str(p) for p in inputs], "codecs": codecs, "models": models, "precision": precision,
-                 "split": split, "refine": list(refine), "every": every, "fresh": fresh}
+                 "split": split, "refine": list(refine), "every": every, "fresh": fresh, "device": device}
     record = run_record(arguments, variants)
     _write_json(record, out_dir / "run.json")
     rows: list[Row] = [] if fresh else reusable_rows(read_rows(out_dir / "results.csv"), variants, log)

@@ -70,8 +70,9 @@ def unique_labels(names: list[str]) -> list[str]:
     return ["/".join(p[-depth:]) for p in parts]
 
 
-def _reference_models(log: Callable[[str], None]) -> dict[str, object]:
-    """The reference checkpoints (e0..e3 found in the shared folder), imported; {} with a message when absent."""
+def _reference_models(log: Callable[[str], None], device: str = "cpu") -> dict[str, object]:
+    """The reference checkpoints (e0..e3 found in the shared folder), imported to run on `device` (a checked name);
+    {} with a message when absent."""
     from mapsqueeze.model import import_reference
     from mapsqueeze.model import CompressionModel
     from mapsqueeze.shared import reference_checkpoints_dir
@@ -83,7 +84,7 @@ def _reference_models(log: Callable[[str], None]) -> dict[str, object]:
     loaded = {}
     for p in refs:
         network = import_reference(p)
-        loaded[p.name] = CompressionModel.from_network(network, f"depoco-{p.name}", state_sha256(network))
+        loaded[p.name] = CompressionModel.from_network(network, f"depoco-{p.name}", state_sha256(network), device)
     return loaded
 
 
@@ -103,25 +104,28 @@ def _baseline_variants(codec: str, log: Callable[[str], None]) -> list[Variant]:
 
 
 def build_variants(codecs: list[str], models: list[str], precision: str, log: Callable[[str], None],
-                   refine: tuple[int, ...] = (0,)) -> list[Variant]:
+                   refine: tuple[int, ...] = (0,), device: str = "cpu") -> list[Variant]:
     """Every (codec, setting) to run; unavailable codecs are skipped with a message. The learned codecs run at each
-    number of encode-time refinement steps in `refine` (depoco-ref's paper-mode f16 only without refinement)."""
+    number of encode-time refinement steps in `refine` (depoco-ref's paper-mode f16 only without refinement), their
+    networks on `device` (MapsqueezeError first for one this machine lacks, `model.devices.device_name`)."""
     from mapsqueeze.model import load_model, shipped_models
+    from mapsqueeze.model.devices import device_name
 
     unknown = [c for c in codecs if c not in known_codecs()]
     if unknown:
         raise MapsqueezeError(f"unknown codec {unknown[0]!r} (known: {', '.join(known_codecs())})")
+    device = device_name(device)
     variants: list[Variant] = []
     for codec in codecs:
         if codec == "mapsqueeze":
             names = models or shipped_models()
             if not names:
                 log("mapsqueeze: no shipped model; pass --models DIR,... (skipped)")
-            loaded = dict(zip(unique_labels(names), map(load_model, names)))
+            loaded = dict(zip(unique_labels(names), (load_model(name, device) for name in names)))
             for steps in refine:
                 variants += _learned_variants(codec, loaded, precision, steps)
         elif codec == "depoco-ref":
-            loaded = _reference_models(log)
+            loaded = _reference_models(log, device)
             # the paper's float16 embeddings, and the same networks through our entropy-coded embeddings
             if 0 in refine:
                 for ref_precision in dict.fromkeys(("f16", precision)):

@@ -40,6 +40,14 @@ def _options(
     """Compress dense 3-D point-cloud maps with a learned autoencoder."""
 
 
+def device_option(runs: str) -> typer.models.OptionInfo:
+    """--device: where the network runs (`runs`: what of it the command runs)."""
+    return typer.Option("cpu", "--device", metavar="cpu|cuda|cuda:N",
+                        help=f"where the network runs ({runs}): cpu (default: numpy without torch, byte-identical "
+                             "output on any machine) or a GPU (cuda, cuda:N: torch there, the same results within "
+                             "float32 rounding, not the same bytes)")
+
+
 def parse_numbers(text: str, count: int, option: str, meaning: str) -> list[float]:
     """'40,40,15' -> [40.0, 40.0, 15.0]; exactly `count` comma-separated numbers or a MapsqueezeError."""
     try:

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from mapsqueeze.cli.app import app, make_console
+from mapsqueeze.cli.app import app, device_option, make_console
 from mapsqueeze.errors import MapsqueezeError
 
 console = make_console()
@@ -49,6 +49,8 @@ def bench_cmd(
     every: int = typer.Option(1, min=1, help="Run on every N-th cloud only (first, N+1-th, ...), e.g. for slow settings"),
     fresh: bool = typer.Option(False, "--fresh", help="Ignore results already in the output folder (default: keep "
                                                       "them and run only the missing cloud/codec/setting rows)"),
+    device: str = device_option("of the mapsqueeze and depoco-ref rows: encoder, refinement steps, decoder; "
+                                "results already in the folder are kept whatever ran them"),
 ):
     """Run every codec and setting on every cloud: bytes, bpp, D_e, D_perp, IoU, encode/decode seconds."""
     from mapsqueeze.benchmark import run_benchmark
@@ -65,7 +67,7 @@ def bench_cmd(
                              models=[m.strip() for m in models.split(",")] if models else None,
                              precision=precision, split=split, log=lambda m: console.print(f"[yellow]{m}"),
                              progress=lambda m: status.update(m), fresh=fresh, refine=refine_steps, every=every,
-                             on_decoded=cloud_view_writer(out))
+                             on_decoded=cloud_view_writer(out), device=device)
     write_report(out, [dataclasses.asdict(r) for r in rows], summarise(rows))
     console.print((out / "results.md").read_text(), markup=False, highlight=False)
     console.print(f"{len(rows)} results -> {out}/results.csv, results.md, run.json, rd*.png, report.html")

@@ -9,7 +9,7 @@ import typer
 
 from mapsqueeze import api
 from mapsqueeze.cli.app import (
-    FORMAT_HELP, app, counted, make_console, nan_points_line, parse_numbers, print_line, print_rows,
+    FORMAT_HELP, app, counted, device_option, make_console, nan_points_line, parse_numbers, print_line, print_rows,
 )
 from mapsqueeze.cli.io_cmds import warn_dropped
 from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
@@ -98,6 +98,8 @@ def compress_command(
                                          "chosen per decoder patch without --max-error/--bpp), "
                                          "neighbour planes (auto: higher IoU, seconds per tile to encode and "
                                          "decode) or none (off, the paper's decode)"),
+    device: str = device_option("the encoder, the --refine steps through torch's autograd and the decoder the mode "
+                                "decision measures"),
 ) -> None:
     """Compress a map: 40 x 40 x 15 m tiles, each stored with the coding its mode decision picks (the network's
     embedding, raw points or an octree); attributes (intensity, colour, labels, ...) on a voxel grid per tile; the
@@ -114,7 +116,8 @@ def compress_command(
                                     bpp=bpp, fallback=fallback, post_filter=post_filter,
                                     progress=progress,
                                     keep_zero_points=keep_zero_points, format=in_format,
-                                    attribute_options=options, workers=workers, dask_scheduler=dask_scheduler)
+                                    attribute_options=options, workers=workers, dask_scheduler=dask_scheduler,
+                                    device=device)
     if summary.nan_points_dropped:
         print_line(nan_points_line(summary.nan_points_dropped))
     if summary.zero_points_dropped:
@@ -154,6 +157,7 @@ def decompress_command(
                                        help="write the geometry only, without decoding the attribute fields"),
     workers: int | None = _workers_option(),
     dask_scheduler: str | None = _dask_option(),
+    device: str = device_option("the decoder"),
 ) -> None:
     """Decompress a .msq file to a point cloud."""
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
@@ -162,7 +166,8 @@ def decompress_command(
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress, max_tile_points=max_tile_points, format=out_format,
-                                    workers=workers, dask_scheduler=dask_scheduler, attributes=not no_attributes)
+                                    workers=workers, dask_scheduler=dask_scheduler, attributes=not no_attributes,
+                                    device=device)
     print_line(f"wrote {counted(count, 'point')} to {output}")
 
 

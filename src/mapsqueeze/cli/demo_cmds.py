@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from mapsqueeze.cli.app import app, make_console
+from mapsqueeze.cli.app import app, device_option, make_console
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS
 
 console = make_console()
@@ -20,11 +20,13 @@ def demo_cmd(
     refine: int = typer.Option(20, min=0, max=MAX_REFINE_STEPS, metavar="STEPS",
                                help="Also compress the KITTI submap with this many encode-time refinement steps "
                                     "(0: skip)"),
+    device: str = device_option("encoder, refinement steps, decoder"),
 ):
     """Compress and decompress a simulated map (and the real KITTI submap when the shared folder is present)."""
     from mapsqueeze.demo import run_demo
 
-    results = run_demo(model, out, progress=lambda m: console.print(f"[dim]{m}"), refine_steps=refine)
+    results = run_demo(model, out, progress=lambda m: console.print(f"[dim]{m}"), refine_steps=refine,
+                       device=device)
     table = Table(title=f"mapsqueeze demo, model {model}")
     table.add_column("")
     for r in results:

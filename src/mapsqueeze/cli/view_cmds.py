@@ -5,7 +5,7 @@ from pathlib import Path
 
 import typer
 
-from mapsqueeze.cli.app import app, nan_points_line, print_line
+from mapsqueeze.cli.app import app, device_option, nan_points_line, print_line
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.view import DEFAULT_MAX_POINTS
 
@@ -23,6 +23,7 @@ def view_command(
                                         "13 with errors and intensity)"),
     model: str | None = typer.Option(None, "--model", help="model to decode with (default: the one in the file)"),
     open_page: bool = typer.Option(False, "--open", help="open the page in the default web browser"),
+    device: str = device_option("the decoder"),
 ) -> None:
     """Write one HTML page (works offline, nothing to serve) showing the decoded map, the original, errors, tiles."""
     from mapsqueeze.io import check_output_path
@@ -32,7 +33,8 @@ def view_command(
     check_output_path(output, inputs=(msq,) if original is None else (msq, original))
     if not msq.is_file():
         raise MapsqueezeError(f"{msq}: no such file")
-    view = ViewInput(msq.name, msq, original=None if original is None else load_cloud(original), model=model)
+    view = ViewInput(msq.name, msq, original=None if original is None else load_cloud(original), model=model,
+                     device=device)
     scene = write_view(view, output, max_points)
     drawn = ", ".join(f"{c['name']} {c['drawn']:,} of {c['total']:,}" for c in scene["clouds"])
     if view.original is not None and view.original.nan_points_dropped:

@@ -199,18 +199,19 @@ def iter_decoded_tiles(
     max_tile_points: int = DEFAULT_MAX_TILE_POINTS,
     workers: int | None = 1,
     dask_scheduler: str | None = None,
+    device: str = "cpu",
 ) -> Iterator[np.ndarray]:
     """Decode a .msq buffer or file tile by tile: yields each tile's (k, 3) float64 world points, in file order
     (tiles left empty by the counts or the bbox crop are skipped). Memory: one tile.
 
-    model: a CompressionModel, a name or path (default: the model id stored in the file); its weights must match
-    the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
+    model: a CompressionModel, run where it was loaded, or a name or path (default: the model id stored in the
+    file), loaded on `device` (a checked name, `devices.device_name`); its weights must match the file's SHA-256. bbox: six numbers x0,y0,z0,x1,y1,z1 (metres); only tiles whose point box intersects it are
     read and decoded, and the output is cropped to it. density / n_points / max_tile_points: see `target_counts`.
     Payloads are read here and decoded by `workers` threads (None: one per core) or on the Dask cluster at
     `dask_scheduler` (`codec.executor`); the points are the same whatever runs them.
     """
     for cloud in iter_decoded_clouds(source, model, bbox, density, n_points, progress, max_tile_points,
-                                     attributes=False, workers=workers, dask_scheduler=dask_scheduler):
+                                     attributes=False, workers=workers, dask_scheduler=dask_scheduler, device=device):
         yield cloud.points
 
 
@@ -225,13 +226,14 @@ def iter_decoded_clouds(
     attributes: bool = True,
     workers: int | None = 1,
     dask_scheduler: str | None = None,
+    device: str = "cpu",
 ) -> Iterator[PointCloud]:
     """As `iter_decoded_tiles`, yielding each tile as a PointCloud: its world points, the attributes coded in the
     file (each decoded point takes its nearest attribute voxel's values; none with attributes=False) and the
     file's metadata."""
     box = None if bbox is None else parse_bbox(bbox)
     for tile in iter_tile_points(source, model, bbox, density, n_points, progress, max_tile_points, attributes,
-                                 workers, dask_scheduler):
+                                 workers, dask_scheduler, device):
         world, values = tile.place(tile.take()), tile.values
         if box is not None:
             inside = ((world >= box[0]) & (world <= box[1])).all(axis=1)
@@ -274,6 +276,7 @@ def iter_tile_points(
     attributes: bool = True,
     workers: int | None = 1,
     dask_scheduler: str | None = None,
+    device: str = "cpu",
 ) -> Iterator[DecodedTile]:
     """As `iter_decoded_clouds` before the tiles are placed in the world and cropped to `bbox` (which selects
     them): a DecodedTile per decoded tile, so that a writer may place a tile part by part
@@ -286,7 +289,7 @@ def iter_tile_points(
                     if box is None or _intersects(tile_world_bounds(header, entry), box)]
         counts = target_counts(header, [reader.entries[p] for p in selected], density, n_points, max_tile_points)
         if any(reader.entries[p].coding is TileCoding.network for p in selected):
-            model = _load_matching_model(model, header, reader.name)
+            model = _load_matching_model(model, header, reader.name, device)
         schema = reader.attribute_schema
         metadata = schema.metadata if schema else {}
         jobs = [(position, count) for position, count in zip(selected, counts) if count != 0]
@@ -365,18 +368,19 @@ def _intersects(a: np.ndarray, b: np.ndarray) -> bool:
     return bool((a[0] <= b[1]).all() and (b[0] <= a[1]).all())
 
 
-def _load_matching_model(model, header: Header, name: str):
+def _load_matching_model(model, header: Header, name: str, device: str = "cpu"):
     """The given model (object, shipped name or the user's path), or the shipped model the file names: a model id
-    read from a file never resolves to a path. Its weights and grid must match the file's."""
+    read from a file never resolves to a path. A name or path is loaded on `device`. Its weights and grid must match
+    the file's."""
     from mapsqueeze.model import load_model, shipped_models
 
     if model is None:
         if header.model_id not in shipped_models():
             raise ModelError(f"{name} was compressed with model {header.model_id!r}, not a shipped model "
                              f"({', '.join(shipped_models()) or 'none shipped'}); pass it with --model PATH")
-        model = load_model(header.model_id, shipped_only=True)
+        model = load_model(header.model_id, device, shipped_only=True)
     elif isinstance(model, (str, os.PathLike)):
-        model = load_model(model)
+        model = load_model(model, device)
     check_model(model, header, name)
     config = model.config
     if header.n_features != config.embedding_dim:

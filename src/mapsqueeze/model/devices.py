@@ -1,10 +1,9 @@
-"""The torch device a device name gives (`train --device`, `load_model(device=...)`), checked before any work."""
+"""The torch device a device name gives (`train --device`, `compress --device`, `load_model(device=...)`), checked
+before any work; torch is imported only for a name other than "cpu"."""
 
 from __future__ import annotations
 
 import os
-
-import torch
 
 from mapsqueeze.errors import MapsqueezeError
 
@@ -18,6 +17,8 @@ def torch_device(name: str, processes: int = 1) -> torch.device:
     cuda where this torch has no CUDA or sees no GPU, where the GPU of the index is absent, or where `processes`
     (one GPU each, from cuda:0) outnumber the GPUs. For cuda, sets CUBLAS_WORKSPACE_CONFIG to `CUBLAS_WORKSPACE`
     unless it is set."""
+    import torch
+
     try:
         device = torch.device(name)
     except (RuntimeError, TypeError):
@@ -34,3 +35,12 @@ def torch_device(name: str, processes: int = 1) -> torch.device:
         raise MapsqueezeError(f"{processes} processes on {name!r} need {processes} GPUs (one each), {count} found")
     os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", CUBLAS_WORKSPACE)
     return device
+
+
+def device_name(name: str) -> str:
+    """The name of a checked device (`torch_device`), as torch writes it ("cpu", "cuda", "cuda:1"): "cpu" for any
+    name of the CPU; "cpu" itself imports no torch."""
+    if str(name) == "cpu":
+        return "cpu"
+    device = torch_device(str(name))
+    return "cpu" if device.type == "cpu" else str(device)

@@ -63,10 +63,12 @@ def read_weights(model_dir: Path) -> tuple[ModelConfig, dict[str, np.ndarray], s
 
 
 def load_model(name_or_path: str | Path = "e1", device: str = "cpu", shipped_only: bool = False):
-    """Load a shipped or saved `CompressionModel`; shipped_only refuses paths (names read from files). On the CPU
-    this imports no torch."""
+    """Load a shipped or saved `CompressionModel` to run on `device` (MapsqueezeError for one this machine lacks,
+    `devices.device_name`); shipped_only refuses paths (names read from files). On the CPU this imports no torch."""
     from mapsqueeze.model.compression import CompressionModel
+    from mapsqueeze.model.devices import device_name
 
+    device = device_name(device)
     model_dir = resolve_model_dir(name_or_path, shipped_only)
     config, tensors, sha = read_weights(model_dir)
     try:

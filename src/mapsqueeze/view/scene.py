@@ -58,6 +58,7 @@ class ViewInput:
     decoded: CloudInput | None = None  # default: api.decompress_cloud(msq) at the stored counts, with its intensity
     metrics: Metrics | None = None  # default: evaluate(original, decoded) when the original is given
     model: object = None  # decoding model (default: the one named in the file)
+    device: str = "cpu"  # where a model given by name, or the file's, decodes (`api.decompress_cloud`)
 
 
 def _b64(array: np.ndarray, dtype: str) -> str:
@@ -85,7 +86,8 @@ def build_scene(view: ViewInput, max_points: int = DEFAULT_MAX_POINTS) -> dict:
         raise ValueError(f"max_points must be at least 1, got {max_points}")
     summary = api.info(view.msq)
     tile_list = api.tiles(view.msq)
-    decoded = view.decoded or CloudInput.from_point_cloud(api.decompress_cloud(view.msq, model=view.model))
+    decoded = view.decoded or CloudInput.from_point_cloud(api.decompress_cloud(view.msq, model=view.model,
+                                                                                         device=view.device))
     metrics = view.metrics
     if metrics is None and view.original is not None:
         metrics = evaluate(view.original.points, decoded.points, n_bytes=summary.file_bytes)
