@@ -174,10 +174,8 @@ def trained_parameters(network: Autoencoder, cfg: TrainConfig) -> list[torch.nn.
 
 
 def init_from(network: Autoencoder, source_dir: Path) -> int:
-    """Copy every learned tensor whose name and shape match from another model (e.g. another rate point).
-
-    Kernel point positions are geometry derived from this model's own configuration and are never copied.
-    """
+    """Copy every learned tensor whose name and shape match from another model (e.g. another rate point); never
+    the kernel point positions, geometry derived from this model's own configuration."""
     other, _ = load_network(source_dir)
     own = network.state_dict()
     matched = {k: v for k, v in other.state_dict().items()
@@ -224,9 +222,8 @@ class _Process:
 
 
 def _join_process_group(device: str) -> tuple[_Process, torch.device]:
-    """Join the process group torchrun (or train_processes) describes in RANK / WORLD_SIZE / LOCAL_RANK, if any:
-    nccl with one GPU per process for cuda (bound to it: `device_id`), gloo otherwise. Returns this process's place
-    and device; MapsqueezeError for a device this machine lacks (`torch_device`)."""
+    """Join the process group torchrun (or train_processes) describes in RANK / WORLD_SIZE / LOCAL_RANK, if any: nccl
+    bound to one GPU per process for cuda, gloo otherwise. This process's place and device (`torch_device`'s checks)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     dev = torch_device(device, int(os.environ.get("LOCAL_WORLD_SIZE", world)))
     if world <= 1:
@@ -238,8 +235,8 @@ def _join_process_group(device: str) -> tuple[_Process, torch.device]:
         dev = torch.device("cuda", process.local_rank)
         torch.cuda.set_device(dev)
     if not dist.is_initialized():
-        cuda = dev.type == "cuda"
-        dist.init_process_group("nccl" if cuda else "gloo", device_id=dev if cuda else None)
+        backend, bound = ("nccl", dev) if dev.type == "cuda" else ("gloo", None)
+        dist.init_process_group(backend, device_id=bound)
     return process, dev
 
 
@@ -342,9 +339,7 @@ def _train(dataset: Path, out_dir: Path, model_config: ModelConfig, cfg: TrainCo
     state_path = out_dir / "last" / "train_state.pt"
     start_epoch, step, best = 0, 0, math.inf
     if resume and state_path.is_file():
-        # On the CPU: the optimiser's load_state_dict moves its moments to the parameters' device and keeps its
-        # step counts on the CPU, as a run that did not resume has them.
-        state = torch.load(state_path, map_location="cpu", weights_only=True)
+        state = torch.load(state_path, map_location="cpu", weights_only=True)  # the optimiser moves its own state
         run = (state.get("objective", "chamfer"), bool(state.get("encoder_only", False)))  # older states: the paper's
         if run != (cfg.objective, cfg.encoder_only):
             raise MapsqueezeError(f"{out_dir} holds a run of objective {run[0]}{', encoder only' * run[1]}: resume it "
