@@ -182,3 +182,18 @@ def test_cli_convert_warns_once_about_dropped_fields(tmp_path):
     assert result.returncode == 0, result.stderr
     assert result.stderr.count("\n") == 1 and "ring, laser" in result.stderr and "warning" in result.stderr
     np.testing.assert_array_equal(read_point_cloud(tmp_path / "a.bin").attributes["reflectance"], 1.0)
+
+
+def test_cli_warns_when_the_output_cannot_hold_the_crs(run_cli, tiny_model_dir, tmp_path):
+    """convert and decompress to a format without a place for the CRS (all but LAS/LAZ) say it is not written."""
+    import mapsqueeze
+
+    make_laz(tmp_path / "a.laz", n=300)
+    code, _, err = run_cli("convert", str(tmp_path / "a.laz"), str(tmp_path / "a.ply"))
+    assert code == 0 and err == "warning: a.ply cannot hold the CRS (EPSG:32632); not written\n"
+    code, _, err = run_cli("convert", str(tmp_path / "a.laz"), str(tmp_path / "b.laz"))
+    assert code == 0 and err == ""
+    mapsqueeze.compress_file(tmp_path / "a.laz", tmp_path / "a.msq", model=tiny_model_dir)
+    code, _, err = run_cli("decompress", str(tmp_path / "a.msq"), "-o", str(tmp_path / "d.ply"), "--model",
+                           str(tiny_model_dir), "--no-attributes")
+    assert code == 0 and err == "warning: d.ply cannot hold the CRS (EPSG:32632); not written\n"

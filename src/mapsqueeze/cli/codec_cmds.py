@@ -161,8 +161,8 @@ def decompress_command(
 ) -> None:
     """Decompress a .msq file to a point cloud."""
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
-    if not no_attributes:
-        warn_dropped(api.info(msq).attributes, output, out_format)
+    summary = api.info(msq)
+    warn_dropped(() if no_attributes else summary.attributes, output, out_format, summary.metadata)
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress, max_tile_points=max_tile_points, format=out_format,

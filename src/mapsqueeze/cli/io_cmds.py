@@ -5,7 +5,9 @@ from pathlib import Path
 import typer
 
 from mapsqueeze.cli.app import FORMAT_HELP, app, counted, nan_points_line, print_line
-from mapsqueeze.io import check_output_path, dropped_fields, format_name, read_point_cloud, write_points
+from mapsqueeze.io import (
+    check_output_path, dropped_fields, format_name, holds_metadata, read_point_cloud, write_points,
+)
 
 
 @app.command()
@@ -22,15 +24,20 @@ def convert(
     check_output_path(output_path, inputs=(input_path,))
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
-    warn_dropped(cloud.attributes, output_path, out_format)
+    warn_dropped(cloud.attributes, output_path, out_format, cloud.metadata)
     if cloud.nan_points_dropped:
         print_line(nan_points_line(cloud.nan_points_dropped))
     print_line(f"wrote {counted(len(cloud), 'point')} to {output_path}")
 
 
-def warn_dropped(names, output_path: Path, out_format: str | None = None) -> None:
-    """One warning line on stderr naming the attributes the output format cannot hold, if any."""
+def warn_dropped(names, output_path: Path, out_format: str | None = None, metadata: dict | None = None) -> None:
+    """One warning line on stderr naming the attributes the output format cannot hold, if any, and one naming the
+    CRS (`metadata["crs"]`) where the format has no place for it."""
     dropped = dropped_fields(names, output_path, out_format)
     if dropped:
         print_line(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; not written",
                    stderr=True)
+    crs = (metadata or {}).get("crs")
+    if crs and not holds_metadata(output_path, out_format):
+        shown = crs if crs.startswith("EPSG:") else "a WKT"
+        print_line(f"warning: {output_path.name} cannot hold the CRS ({shown}); not written", stderr=True)

@@ -57,6 +57,7 @@ class Format:
     write: Callable[[Path, ChunkSource, CloudStats], tuple[str, ...]]  # atomic writer; returns the names stored
     fields: tuple[str, ...] | None  # attribute names it holds (ANY_FIELDS: any)
     streams: bool  # True: memory-mapped or chunked reading and chunk-by-chunk writing; False: whole in memory
+    metadata: bool = False  # True: writes the file metadata (LAS header records: the CRS)
 
     def holds(self, name: str) -> bool:
         return self.fields is ANY_FIELDS or name in self.fields
@@ -82,8 +83,8 @@ FORMATS: dict[str, Format] = {fmt.name: fmt for fmt in (
     Format("ply-ascii", (), ply.ply_chunks, partial(ply.write_ply, text=True), ANY_FIELDS, False),
     Format("pcd", (".pcd",), pcd_chunks, partial(write_pcd, encoding="binary"), ANY_FIELDS, False),
     Format("pcd-ascii", (), pcd_chunks, partial(write_pcd, encoding="ascii"), ANY_FIELDS, False),
-    Format("las", (".las",), _las_chunks, partial(_write_las, compress=False), ANY_FIELDS, True),
-    Format("laz", (".laz",), _las_chunks, partial(_write_las, compress=True), ANY_FIELDS, True),
+    Format("las", (".las",), _las_chunks, partial(_write_las, compress=False), ANY_FIELDS, True, True),
+    Format("laz", (".laz",), _las_chunks, partial(_write_las, compress=True), ANY_FIELDS, True, True),
     Format("npy", (".npy",), tables.npy_chunks, tables.write_npy, ANY_FIELDS, True),
 )}
 
@@ -124,6 +125,11 @@ def dropped_fields(names: Iterable[str], path: str | os.PathLike, format: str | 
     """The attribute names a file of this format cannot hold (before writing it)."""
     fmt = FORMATS[format_name(path, format)]
     return [name for name in names if not fmt.holds(name)]
+
+
+def holds_metadata(path: str | os.PathLike, format: str | None = None) -> bool:
+    """Whether a file of this format keeps the file metadata (`PointCloud.metadata`: LAS header records, the CRS)."""
+    return FORMATS[format_name(path, format)].metadata
 
 
 def _existing_file(path: str | os.PathLike) -> Path:
