@@ -197,3 +197,6 @@ def test_cli_warns_when_the_output_cannot_hold_the_crs(run_cli, tiny_model_dir, 
     code, _, err = run_cli("decompress", str(tmp_path / "a.msq"), "-o", str(tmp_path / "d.ply"), "--model",
                            str(tiny_model_dir), "--no-attributes")
     assert code == 0 and err == "warning: d.ply cannot hold the CRS (EPSG:32632); not written\n"
+    code, _, err = run_cli("decompress", str(tmp_path / "a.msq"), "-o", str(tmp_path / "d.bin"), "--model",
+                           str(tiny_model_dir))  # UTM in a float32 format: the error alone, no warnings before it
+    assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and "float32" in err

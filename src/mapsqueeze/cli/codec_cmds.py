@@ -161,13 +161,13 @@ def decompress_command(
 ) -> None:
     """Decompress a .msq file to a point cloud."""
     box = None if bbox is None else parse_numbers(bbox, 6, "--bbox", "six comma-separated numbers x0,y0,z0,x1,y1,z1")
-    summary = api.info(msq)
-    warn_dropped(() if no_attributes else summary.attributes, output, out_format, summary.metadata)
     with _tile_progress("decompressing") as progress:
         count = api.decompress_file(msq, output, model=model, bbox=box, density=density, n_points=points,
                                     progress=progress, max_tile_points=max_tile_points, format=out_format,
                                     workers=workers, dask_scheduler=dask_scheduler, attributes=not no_attributes,
                                     device=device)
+    summary = api.info(msq)  # what the output could not hold: said once it is written, not before an error
+    warn_dropped(() if no_attributes else summary.attributes, output, out_format, summary.metadata)
     print_line(f"wrote {counted(count, 'point')} to {output}")
 
 
