@@ -200,6 +200,8 @@ def test_report_names_the_codecs_of_a_partial_front():
     assert report.count("the classical front of") == 3
     every = [_row("map", codec, "x", 0.3, 0.2) for codec in classical_codecs()]
     assert markdown_report(rows + every).count(f"the full classical front ({', '.join(classical_codecs())})") == 3
+    learned_only = markdown_report([rows[-1]])
+    assert learned_only.count(f"a classical front (none ran of {', '.join(classical_codecs())})") == 3
 
 
 def test_size_band_comparison_groups_clouds_by_point_count():

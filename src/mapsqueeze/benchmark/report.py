@@ -73,8 +73,10 @@ def front_name(rows: list[Row]) -> str:
     ran = [codec for codec in registered if any(r.codec == codec for r in rows)]
     if len(ran) == len(registered):
         return f"the full classical front ({', '.join(ran)})"
+    if not ran:
+        return f"a classical front (none ran of {', '.join(registered)})"
     missing = [codec for codec in registered if codec not in ran]
-    return f"the classical front of {', '.join(ran) or 'no codec'} only ({', '.join(missing)} not run)"
+    return f"the classical front of {', '.join(ran)} only ({', '.join(missing)} not run)"
 
 
 def front_table(comparisons: list[Comparison], front: str) -> list[str]:
