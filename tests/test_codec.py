@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 import mapsqueeze
+from mapsqueeze.api import RATE_TARGET_MODELS
 from mapsqueeze.codec import decompress as decompress_module
 from mapsqueeze.codec.compress import compress_chunks
 from mapsqueeze.codec.container import TileCoding, open_container
@@ -553,6 +554,16 @@ def test_rate_targets_are_met(map_points, model):
     assert sizes[0] < sizes[1]
     with pytest.raises(MapsqueezeError, match="not both"):
         mapsqueeze.compress(map_points, model=model, max_error=0.1, bpp=1.0)
+
+
+def test_a_bpp_budget_nothing_meets_gets_the_smallest_file_of_the_shipped_models(map_points):
+    """With no model and a budget no coding meets, the file kept among e0..e3 is the smallest of theirs (the
+    lowest-D_e one, kept before, is 4.7x the smallest here without the octree)."""
+    for fallback in (True, False):
+        chosen = mapsqueeze.compress(map_points, bpp=1e-9, fallback=fallback)
+        sizes = [len(mapsqueeze.compress(map_points, model=name, bpp=1e-9, fallback=fallback))
+                 for name in RATE_TARGET_MODELS]
+        assert len(chosen) == min(sizes), (fallback, len(chosen), sizes)
 
 
 @pytest.mark.parametrize("target", [{"fallback": False}, {"max_error": 0.1}, {"bpp": 1.0}])

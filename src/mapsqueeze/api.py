@@ -132,7 +132,7 @@ def compress(points: np.ndarray, model=None, precision: str | Precision = DEFAUL
     and no model, the one of e0..e3 that meets the target best). Each tile is stored with the coding its mode
     decision picks (`codec.modes`): by default the lowest D_e at no more bytes than the network's payload;
     max_error (metres): the smallest coding with D_e <= max_error; bpp: the lowest D_e within that many bits per
-    point. fallback=False offers tiles only the network (and raw coding when sparse), not the octree (the paper's
+    point (the smallest file when nothing fits). fallback=False offers tiles only the network (and raw coding when sparse), not the octree (the paper's
     mode, with post_filter="off"). post_filter: the decode post-filter per network tile (`codec.postfilter`, one byte per tile):
     "patch" (default: patch planes where they raise the tile's IoU, ~10 ms per tile; without max_error or bpp,
     their options chosen per decoder patch where that pays, +0.4-0.8 s per tile), "auto" (neighbour planes:

@@ -131,7 +131,7 @@ def compress_command(
                      if summary.attributes else ""))
     if bpp is not None and summary.bits_per_point > bpp:  # the smallest choices were taken (`codec.modes`)
         print(f"warning: {output} takes {summary.bits_per_point:.4f} bits per point, more than --bpp {bpp:g}: no "
-              "choice of codings fits", file=sys.stderr)
+              "choice of codings fits, so the smallest found was written", file=sys.stderr)
 
 
 @app.command("decompress")

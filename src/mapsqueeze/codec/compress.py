@@ -358,8 +358,12 @@ def _compress_tiles(
                     break
                 budget -= len(data) - target_bytes
         mean_d_e = summary(weights, choices)[1]
-        score = ((len(data) > target.bpp * n_points / 8, mean_d_e) if target.bpp is not None
-                 else (len(data), mean_d_e))
+        if target.bpp is None:
+            score = (len(data), mean_d_e)
+        elif len(data) <= target.bpp * n_points / 8:  # within the budget: the lowest D_e
+            score = (False, mean_d_e)
+        else:  # nothing fits (each tile took its cheapest candidate): the smallest file
+            score = (True, len(data), mean_d_e)
         if best is None or score < best[0]:
             best = (score, data)
     return best[1]

@@ -8,7 +8,8 @@ of the tile's points against what the decoder gives by default for that payload)
   decoder is weak, gets the classical coding whenever that is better at no more bytes);
 - `max_error_m`: the smallest candidate with D <= max_error_m (the lowest D when none meets it);
 - `bpp`: the Lagrangian choice min sum(n_t D_t) + lambda sum(R_t), lambda bisected so that the file fits
-  bpp x points / 8 bytes (the cheapest choice per tile when nothing fits).
+  bpp x points / 8 bytes (the cheapest choice per tile when nothing fits; among several models, the smallest
+  file is then kept, `codec.compress`).
 """
 
 from __future__ import annotations
