@@ -200,3 +200,53 @@ def test_cli_warns_when_the_output_cannot_hold_the_crs(run_cli, tiny_model_dir, 
     code, _, err = run_cli("decompress", str(tmp_path / "a.msq"), "-o", str(tmp_path / "d.bin"), "--model",
                            str(tiny_model_dir))  # UTM in a float32 format: the error alone, no warnings before it
     assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and "float32" in err
+
+
+def coloured_cloud(n: int = 600, seed: int = 3) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Points on a 12 x 12 m ground with 8-bit colour (uint8, every value 0..255 present) and a uint16 intensity."""
+    rng = np.random.default_rng(seed)
+    points = np.column_stack([rng.uniform(0, 12, n), rng.uniform(0, 12, n), rng.normal(0.5, 0.03, n)])
+    channels = {name: np.roll(np.arange(n) % 256, shift).astype(np.uint8)
+                for shift, name in enumerate(("red", "green", "blue"))}
+    return points, {**channels, "intensity": rng.integers(0, 4000, n).astype(np.uint16)}
+
+
+def test_cli_convert_scales_8_bit_colour_to_the_16_bits_of_las(run_cli, tmp_path):
+    """PLY uchar colour (0..255) becomes LAS's 16-bit colour (x 257: 0 -> 0, 255 -> 65535); LAS colour goes to PLY
+    and PCD as the uint16 it is, so LAS -> PLY -> LAS keeps it exactly."""
+    points, attributes = coloured_cloud()
+    write_points(tmp_path / "rgb.ply", points, attributes=attributes)
+    assert run_cli("convert", str(tmp_path / "rgb.ply"), str(tmp_path / "out.las"))[0] == 0
+    las = laspy.read(tmp_path / "out.las")
+    for name in ("red", "green", "blue"):
+        np.testing.assert_array_equal(np.asarray(las[name]), attributes[name].astype(np.uint16) * 257, err_msg=name)
+    assert np.asarray(las.red).min() == 0 and np.asarray(las.red).max() == 65535
+    np.testing.assert_array_equal(np.asarray(las.intensity), attributes["intensity"])  # not a colour: as it is
+    for name in ("back.ply", "back.pcd"):
+        assert run_cli("convert", str(tmp_path / "out.las"), str(tmp_path / name))[0] == 0
+        back = read_point_cloud(tmp_path / name)
+        for channel in ("red", "green", "blue"):
+            assert back.attributes[channel].dtype == np.uint16
+            np.testing.assert_array_equal(back.attributes[channel], np.asarray(las[channel]))
+    assert run_cli("convert", str(tmp_path / "back.ply"), str(tmp_path / "again.las"))[0] == 0
+    np.testing.assert_array_equal(np.asarray(laspy.read(tmp_path / "again.las").points.array),
+                                  np.asarray(las.points.array))
+
+
+def test_decompress_to_las_scales_a_ply_s_8_bit_colour(run_cli, tiny_model_dir, tmp_path):
+    """A coloured PLY compressed and decompressed to .las holds the decoded 8-bit colour x 257, as .ply holds it
+    x 1; 8-bit colour written into LAS unscaled (the former behaviour) would peak at 255."""
+    import mapsqueeze
+
+    points, attributes = coloured_cloud()
+    write_points(tmp_path / "rgb.ply", points, attributes=attributes)
+    mapsqueeze.compress_file(tmp_path / "rgb.ply", tmp_path / "rgb.msq", model=tiny_model_dir)
+    for name in ("d.ply", "d.las"):
+        code, _, err = run_cli("decompress", str(tmp_path / "rgb.msq"), "-o", str(tmp_path / name), "--model",
+                               str(tiny_model_dir))
+        assert code == 0 and err == ""
+    ply, las = read_point_cloud(tmp_path / "d.ply"), laspy.read(tmp_path / "d.las")
+    assert ply.attributes["red"].dtype == np.uint8 and ply.attributes["red"].max() > 200
+    for name in ("red", "green", "blue"):
+        np.testing.assert_array_equal(np.asarray(las[name]), ply.attributes[name].astype(np.uint16) * 257)
+    np.testing.assert_array_equal(np.asarray(las.intensity), ply.attributes["intensity"])

@@ -8,7 +8,8 @@ Format names (`format=` overrides the extension):
 - `pcd`      PCD with DATA binary when written (ascii, binary or LZF binary_compressed when read), extension .pcd;
              `pcd-ascii` writes ascii; points with a NaN coordinate (missing returns of organised clouds) are left
              out when read (io.pcd)
-- `las`, `laz` LAS 1.2-1.4 with every standard field, extra bytes and the header's CRS records (io.las)
+- `las`, `laz` LAS 1.2-1.4 with every standard field, extra bytes and the header's CRS records; uint8 colour
+             written x 257 into LAS's 16-bit colour (io.las)
 - `npy`      NumPy float array N x 3 (metres), or N x (3 + k) with k attribute columns, extension .npy; integer
              arrays are refused (their unit is unknown)
 

@@ -13,6 +13,11 @@ Writing: the point format is the metadata's when it holds every standard field g
 3, 6, 7, 8 that does; standard fields must fit their LAS type exactly. Scale and offset are the metadata's when
 the cloud fits them, else LAS_SCALE_M and the minimum rounded down to whole metres (error at most 0.05 mm; extent
 below 2^31 * 0.1 mm, about 214 km, per axis). Other attributes become extra-bytes dimensions of their own dtype.
+
+Colour: LAS colour (`red`, `green`, `blue`, `nir`) is 16-bit (0..65535, ASPRS), and an attribute's dtype is its bit
+depth, so uint8 channels (PLY uchar, PCD packed rgb) are written scaled by EIGHT_BIT_SCALE (255 -> 65535) and channels
+of any other dtype as they are. Read colour stays 16-bit whatever the writer after it: PLY and PCD store it as uint16
+(PLY ushort, PCD fields `red` `green` `blue` of TYPE U SIZE 2), so LAS -> PLY -> LAS keeps it exactly.
 """
 
 import base64
@@ -33,6 +38,10 @@ LAS_SCALE_M = 1e-4
 STANDARD_FIELDS = ("intensity", "return_number", "number_of_returns", "classification", "scan_angle_rank",
                    "scan_angle", "user_data", "point_source_id", "gps_time", "red", "green", "blue", "nir")
 """Standard LAS point fields read and written as attributes (those the point format has)."""
+COLOUR_FIELDS = ("red", "green", "blue", "nir")
+"""The standard fields holding 16-bit colour."""
+EIGHT_BIT_SCALE = 257
+"""Factor from 8-bit to 16-bit colour (v * 257 maps 0..255 onto 0..65535; v >> 8 undoes it)."""
 
 _WRITE_FORMATS = (0, 1, 2, 3, 6, 7, 8)
 _INTEGER_LIMIT = 2**31 - 1
@@ -195,6 +204,8 @@ def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool
                 record = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=header)
                 record.x, record.y, record.z = chunk.points[:, 0], chunk.points[:, 1], chunk.points[:, 2]
                 for name, values in chunk.attributes.items():
+                    if name in COLOUR_FIELDS and values.dtype == np.uint8:
+                        values = values * np.uint16(EIGHT_BIT_SCALE)
                     limits = _integer_limits(record, name) if name in standard else None
                     if limits is not None:
                         low, high = limits
