@@ -202,6 +202,18 @@ def test_cli_warns_when_the_output_cannot_hold_the_crs(run_cli, tiny_model_dir, 
     assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and "float32" in err
 
 
+@pytest.mark.parametrize("crs, shown", [(32632, "32632"), ('PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84"]]', "a WKT")])
+def test_cli_decompress_warns_of_a_crs_the_api_stored_as_any_value(run_cli, tiny_model_dir, tmp_path, crs, shown):
+    """metadata["crs"] given to the API may be any JSON value: the warning names it, it does not fail."""
+    import mapsqueeze
+
+    points = np.random.default_rng(0).uniform(0, 5, (300, 3))
+    (tmp_path / "a.msq").write_bytes(mapsqueeze.compress(points, model=tiny_model_dir, metadata={"crs": crs}))
+    code, _, err = run_cli("decompress", str(tmp_path / "a.msq"), "-o", str(tmp_path / "d.ply"), "--model",
+                           str(tiny_model_dir))
+    assert code == 0 and err == f"warning: d.ply cannot hold the CRS ({shown}); not written\n", err
+
+
 def coloured_cloud(n: int = 600, seed: int = 3) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Points on a 12 x 12 m ground with 8-bit colour (uint8, every value 0..255 present) and a uint16 intensity."""
     rng = np.random.default_rng(seed)

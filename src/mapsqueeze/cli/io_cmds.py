@@ -32,12 +32,14 @@ def convert(
 
 def warn_dropped(names, output_path: Path, out_format: str | None = None, metadata: dict | None = None) -> None:
     """One warning line on stderr naming the attributes the output format cannot hold, if any, and one naming the
-    CRS (`metadata["crs"]`) where the format has no place for it."""
+    CRS (`metadata["crs"]`: "EPSG:n" or a WKT from a LAS file, any JSON value from the API) where the format has no
+    place for it."""
     dropped = dropped_fields(names, output_path, out_format)
     if dropped:
         print_line(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; not written",
                    stderr=True)
     crs = (metadata or {}).get("crs")
     if crs and not holds_metadata(output_path, out_format):
-        shown = crs if crs.startswith("EPSG:") else "a WKT"
+        text = str(crs)
+        shown = "a WKT" if "[" in text else text
         print_line(f"warning: {output_path.name} cannot hold the CRS ({shown}); not written", stderr=True)
