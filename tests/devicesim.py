@@ -5,6 +5,7 @@ moved there) is an `OnDevice` wrapping a CPU tensor, so the code computes real v
 takes on a GPU (`device.type != "cpu"`). What CUDA refuses is refused: an operation mixing an `OnDevice` tensor with
 a CPU tensor that is not 0-dimensional (CUDA takes those, CPU indices of `tensor[indices]` and a CPU source of
 `copy_`, nothing else), and `.numpy()` or `np.asarray` of an `OnDevice` tensor (CUDA's need `.cpu()` first).
+Inside the block `devices.torch_device` takes "meta" as a device the network runs on, as it takes "cuda".
 Not simulated: other threads (torch's dispatch modes hold in the thread that enters them), torch.load with
 map_location on the device, process groups (nccl), CUDA's own rounding and memory.
 """
@@ -84,5 +85,12 @@ class _Simulation(TorchDispatchMode):
 @contextlib.contextmanager
 def simulated_device():
     """The block runs with DEVICE simulating a GPU (see the module's docstring)."""
-    with _Simulation():
-        yield DEVICE
+    from mapsqueeze.model import devices
+
+    types = devices.DEVICE_TYPES
+    devices.DEVICE_TYPES = (*types, DEVICE)
+    try:
+        with _Simulation():
+            yield DEVICE
+    finally:
+        devices.DEVICE_TYPES = types

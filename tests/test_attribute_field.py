@@ -180,6 +180,7 @@ def test_rate_control_counts_the_attribute_streams_of_the_chosen_codings():
 def test_the_attribute_support_is_decoded_on_the_cpu_whatever_the_model_device():
     """A model on another device gives the support of the CPU decoder (its last-bit rounding differs, which could
     move points across voxels) without building its own network."""
+    from devicesim import simulated_device
     from test_attributes import street
 
     from mapsqueeze.codec.container import TileCoding
@@ -192,7 +193,8 @@ def test_the_attribute_support_is_decoded_on_the_cpu_whatever_the_model_device()
     with stream:
         position = next(i for i, e in enumerate(reader.entries) if e.coding is TileCoding.network)
         entry, payload = reader.entries[position], reader.payload(position)
-        cpu, other = load_model("e1"), load_model("e1", device="meta")  # not the CPU; never built here
+        with simulated_device() as device:
+            cpu, other = load_model("e1"), load_model("e1", device=device)  # not the CPU; never built here
         expected = decode_payload(reader.header, entry, payload, cpu, None, "tile", 1 << 23)
         support = attribute_support(reader.header, entry, payload, other, "tile")
     assert other._network is None

@@ -116,6 +116,9 @@ def test_a_device_name_is_checked_before_any_work(monkeypatch):
     with pytest.raises(MapsqueezeError, match="unknown device 'gpu'"):
         torch_device("gpu")
     assert torch_device("cpu") == torch.device("cpu")
+    for name in ("mps", "xpu", "meta"):  # devices torch knows that the network does not run on
+        with pytest.raises(MapsqueezeError, match=f"device '{name}' is not supported: use cpu or cuda"):
+            torch_device(name)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
@@ -184,10 +187,11 @@ def test_the_api_loads_the_models_it_names_on_the_device(torch_passes):
 def test_a_loaded_model_runs_where_it_was_loaded_and_a_device_is_checked_before_any_work(tmp_path):
     import mapsqueeze
 
-    with pytest.raises(MapsqueezeError, match="runs on 'cpu', not on device 'meta'"):
-        mapsqueeze.compress(_street(), model=load_model("e0"), device="meta")
-    with pytest.raises(MapsqueezeError, match="with a Dask cluster"):
-        mapsqueeze.decompress(b"not read", device="meta", dask_scheduler="local")
+    with simulated_device() as device:
+        with pytest.raises(MapsqueezeError, match="runs on 'cpu', not on device 'meta'"):
+            mapsqueeze.compress(_street(), model=load_model("e0"), device=device)
+        with pytest.raises(MapsqueezeError, match="with a Dask cluster"):
+            mapsqueeze.decompress(b"not read", device=device, dask_scheduler="local")
     with pytest.raises(MapsqueezeError, match="unknown device 'gpu'"):
         mapsqueeze.compress_file(tmp_path / "missing.ply", tmp_path / "out.msq", device="gpu")
     assert not (tmp_path / "out.msq").exists()
@@ -243,6 +247,21 @@ def test_a_command_on_a_gpu_this_machine_lacks_is_one_error_line_and_no_output(r
     assert code == 2 and err.strip().startswith("error:") and "device 'cuda' is not available" in err, err
     assert len(err.strip().splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.msq", "map.ply"] and not out.exists()
+
+
+@pytest.mark.parametrize("command", ["compress", "decompress"])
+def test_a_device_torch_knows_but_the_network_does_not_run_on_is_one_error_line(run_cli, tmp_path, command):
+    """--device mps (xpu, meta, ...) is refused before any work, not a traceback from the first tensor moved."""
+    import mapsqueeze
+    from mapsqueeze.io import write_points
+
+    write_points(tmp_path / "map.ply", _street(3000))
+    (tmp_path / "map.msq").write_bytes(mapsqueeze.compress(_street(3000), model="e0", workers=1))
+    source, out = {"compress": ("map.ply", "out.msq"), "decompress": ("map.msq", "out.ply")}[command]
+    code, _, err = run_cli(command, str(tmp_path / source), "-o", str(tmp_path / out), "--device", "mps")
+    assert code == 2 and err == "error: device 'mps' is not supported: use cpu or cuda (cuda:N for the GPU of " \
+                                "index N)\n", err
+    assert not (tmp_path / out).exists()
 
 
 def test_device_cpu_is_the_default_byte_for_byte(run_cli, tmp_path):

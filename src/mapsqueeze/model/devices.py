@@ -7,15 +7,17 @@ import os
 
 from mapsqueeze.errors import MapsqueezeError
 
+DEVICE_TYPES = ("cpu", "cuda")
+"""The kinds of device the network runs on (torch knows others: mps, xpu, meta, ..., which it does not)."""
 CUBLAS_WORKSPACE = ":4096:8"
 """cuBLAS workspace with which its matrix products give the same bits every run (CUBLAS_WORKSPACE_CONFIG), the setting
 torch's deterministic mode (`refinetorch`) asks for; torch reads it once, at the process's first matrix product."""
 
 
 def torch_device(name: str, processes: int = 1) -> torch.device:
-    """torch.device of `name` ("cpu", "cuda", "cuda:1", ...). MapsqueezeError for a name torch does not know, and for
-    cuda where this torch has no CUDA or sees no GPU, where the GPU of the index is absent, or where `processes`
-    (one GPU each, from cuda:0) outnumber the GPUs. For cuda, sets CUBLAS_WORKSPACE_CONFIG to `CUBLAS_WORKSPACE`
+    """torch.device of `name` ("cpu", "cuda", "cuda:1", ...). MapsqueezeError for a name torch does not know or of a
+    type not in DEVICE_TYPES, and for cuda where this torch has no CUDA or sees no GPU, where the GPU of the index is
+    absent, or where `processes` (one GPU each, from cuda:0) outnumber the GPUs. For cuda, sets CUBLAS_WORKSPACE_CONFIG to `CUBLAS_WORKSPACE`
     unless it is set."""
     import torch
 
@@ -23,6 +25,8 @@ def torch_device(name: str, processes: int = 1) -> torch.device:
         device = torch.device(name)
     except (RuntimeError, TypeError):
         raise MapsqueezeError(f"unknown device {name!r}: use cpu or cuda (cuda:N for the GPU of index N)") from None
+    if device.type not in DEVICE_TYPES:
+        raise MapsqueezeError(f"device {name!r} is not supported: use cpu or cuda (cuda:N for the GPU of index N)")
     if device.type != "cuda":
         return device
     if not torch.cuda.is_available():
