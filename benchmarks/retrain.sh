@@ -36,18 +36,23 @@ else py=python3
 fi
 export PYTHONPATH=$root/src${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 
+"$py" - "$device" <<'EOF'
+import sys
+
+import torch
+
+from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.model.devices import torch_device
+
+try:
+    device = torch_device(sys.argv[1])  # the check train makes, before minutes of simulation
+except MapsqueezeError as exc:
+    sys.exit(f"error: {exc}; DEVICE=cpu trains on the CPU")
+where = torch.cuda.get_device_name(device) if device.type == "cuda" else "the CPU"
+print(f"torch {torch.__version__} on {where}")
+EOF
 mkdir -p "$out"
 out=$(cd "$out" && pwd)
-"$py" - "$device" <<'EOF'
-import sys, torch
-device = sys.argv[1]
-if device == "cuda":
-    if not torch.cuda.is_available():
-        sys.exit("error: DEVICE=cuda but torch sees no CUDA device (set DEVICE=cpu to train on the CPU)")
-    print(f"torch {torch.__version__} on {torch.cuda.get_device_name(0)}")
-else:
-    print(f"torch {torch.__version__} on the CPU")
-EOF
 
 if [[ -n ${DATASET:-} ]]; then
     data=$DATASET

@@ -37,13 +37,17 @@ def test_retrain_simulates_trains_and_packs_a_model_that_loads(tmp_path):
     assert (tmp_path / "models" / "e1" / "model.safetensors").read_bytes() != shipped.read_bytes()  # it trained
 
 
-def test_retrain_refuses_cuda_without_a_device(tmp_path):
+@pytest.mark.parametrize("device, message", [("cuda", "device 'cuda' is not available"),
+                                             ("cuda:7", "device 'cuda:7' is not available"),
+                                             ("gpu", "unknown device 'gpu'")])
+def test_retrain_refuses_a_device_train_would_refuse_before_simulating(tmp_path, device, message):
+    """The check train makes (`devices.torch_device`), once, before minutes of simulation; no OUT folder left."""
     import torch
 
     if torch.cuda.is_available():
         pytest.skip("a CUDA device is present")
-    run = _run(tmp_path / "run", DEVICE="cuda")
-    assert run.returncode != 0
-    assert run.stderr.strip().splitlines() == [
-        "error: DEVICE=cuda but torch sees no CUDA device (set DEVICE=cpu to train on the CPU)"]
-    assert not (tmp_path / "run" / "sim_mix").exists()
+    run = _run(tmp_path / "run", DEVICE=device)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode != 0 and len(lines) == 1, run.stderr
+    assert lines[0].startswith(f"error: {message}") and lines[0].endswith("; DEVICE=cpu trains on the CPU")
+    assert not (tmp_path / "run").exists()
