@@ -907,4 +907,8 @@ def test_a_density_that_gives_no_points_is_named_not_a_bbox(run_cli, map_file, t
     code, _, err = run_cli("decompress", str(msq), "-o", str(tmp_path / output), "--model", str(tiny_model_dir),
                            "--bbox", far)
     assert code == 2 and "the bbox holds no decoded points" in err
+    whole = ",".join(str(v) for v in [-1e6, -1e6, -1e6, 1e6, 1e6, 1e6])  # every tile, none at that density
+    code, _, err = run_cli("decompress", str(msq), "-o", str(tmp_path / output), "--model", str(tiny_model_dir),
+                           "--bbox", whole, "--density", "1e-9")
+    assert code == 2 and "the bbox holds no decoded points at a density of 1e-09 points per m^3" in err, err
     assert not (tmp_path / output).exists()

@@ -462,11 +462,15 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
 
 
 def _nothing_to_write(input_path, bbox, density: float | None) -> InvalidPointCloudError:
-    """The error of a decode with no point: the bbox holds none, or (without one) the density gives every tile none."""
-    if bbox is None and density is not None:
+    """The error of a decode with no point: the bbox holds none (at the density, when one is given), or (without a
+    bbox) the density gives every tile none."""
+    if density is None:
+        return InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
+    if bbox is None:
         return InvalidPointCloudError(f"{input_path}: no points to write (a density of {density:g} points per m^3 "
                                       "decodes every tile to no point)")
-    return InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points)")
+    return InvalidPointCloudError(f"{input_path}: no points to write (the bbox holds no decoded points at a density "
+                                  f"of {density:g} points per m^3)")
 
 
 def _spill_chunks(points_path: str, attribute_paths: dict[str, tuple[str, np.dtype]], n_points: int,
