@@ -349,6 +349,22 @@ def test_pcd_packed_colour_reads_as_red_green_blue(tmp_path, kind, data, binary_
         np.testing.assert_array_equal(cloud.attributes[name], values, err_msg=name)
 
 
+def test_pcd_ascii_rgb_written_as_float_values_is_read_as_floats_throughout(tmp_path):
+    """An ascii `rgb` column written as the floats' values (not PCL's integers) is read as floats in every row,
+    including a value that happens to be whole: 1.0 is the bits 0x3F800000, not the integer 1."""
+    bits = np.array([0x00FF0000, 0x3F800000, 0x000000FF, 0], dtype=np.uint32)
+    floats = bits.view("<f4")
+    body = "".join(f"{i} 0 0 {value!r}\n" for i, value in enumerate(floats.astype(np.float64).tolist()))
+    assert "1.0" in body.split("\n")[1]
+    path = tmp_path / "float_rgb.pcd"
+    path.write_text("VERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\nWIDTH 4\n"
+                    "HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 4\nDATA ascii\n" + body)
+    cloud = read_point_cloud(path)
+    np.testing.assert_array_equal(cloud.attributes["red"], bits >> 16 & 255)
+    np.testing.assert_array_equal(cloud.attributes["green"], bits >> 8 & 255)
+    np.testing.assert_array_equal(cloud.attributes["blue"], bits & 255)
+
+
 @pytest.mark.parametrize("alpha", [False, True])
 @pytest.mark.parametrize("name", ["a.pcd", "a.pcd-ascii"])
 def test_pcd_writes_uint8_colour_packed_as_pcl_does(tmp_path, name, alpha):

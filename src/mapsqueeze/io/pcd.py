@@ -3,7 +3,7 @@ DATA ascii and binary.
 
 Fields with COUNT k > 1 become attributes `name_0` .. `name_{k-1}`; padding fields named `_` are dropped.
 PCL's packed colour, `rgb` (a float32 in pcl::PointXYZRGB, a NaN bit pattern when alpha is 255; in ascii, as PCL writes
-it, the bits as an unsigned integer) or `rgba` (uint32), 0xAARRGGBB, is read as uint8 attributes `red`, `green`,
+it, the bits as an unsigned integer, or else the floats' values) or `rgba` (uint32), 0xAARRGGBB, is read as uint8 attributes `red`, `green`,
 `blue` (and `alpha` for rgba) and written back packed the same way.
 Points whose x, y or z is NaN, the "no return" marker of organised clouds written by PCL and ROS drivers, are left
 out with their attributes and counted (`PointCloud.nan_points_dropped`); infinite coordinates are refused.
@@ -121,14 +121,19 @@ def _parse_ascii(body: bytes, dtype: np.dtype, num_points: int, path: Path) -> n
     for name in dtype.names:
         width = int(np.prod(dtype[name].shape))
         values = rows[:, column : column + width].reshape(records[name].shape)
-        if name in _PACKED_COLOURS and dtype[name] == np.dtype("<f4"):  # PCL writes its bits as an integer
-            whole = (values == np.floor(values)) & (values >= 0) & (values < 2.0**32)
-            values = np.where(whole, values, 0).astype("<u4")
-            values[~whole] = rows[~whole, column].astype("<f4").view("<u4")
-            values = values.view("<f4")
+        if name in _PACKED_COLOURS and dtype[name] == np.dtype("<f4"):
+            values = _packed_colour_text(values)
         records[name] = values
         column += width
     return records
+
+
+def _packed_colour_text(values: np.ndarray) -> np.ndarray:
+    """An ascii `rgb` float field's (N,) values -> float32 with the packed bits. PCL writes the bits as unsigned
+    integers, other writers the float's value: one reading for the whole column, integers only where every value is
+    a whole number in [0, 2^32), so that a float that happens to be whole (1.0: bits 0x3F800000) is not read as 1."""
+    whole = (values == np.floor(values)) & (values >= 0) & (values < 2.0**32)
+    return values.astype("<u4").view("<f4") if whole.all() else values.astype("<f4")
 
 
 def _fields(path: Path) -> tuple[dict[str, np.ndarray], int]:
