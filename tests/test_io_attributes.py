@@ -214,6 +214,45 @@ def test_cli_decompress_warns_of_a_crs_the_api_stored_as_any_value(run_cli, tiny
     assert code == 0 and err == f"warning: d.ply cannot hold the CRS ({shown}); not written\n", err
 
 
+WKT_UTM32 = ('PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+             'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
+             'PARAMETER["central_meridian",9],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],'
+             'UNIT["metre",1],AUTHORITY["EPSG","32632"]]')
+
+
+@pytest.mark.parametrize("name", ["d.las", "d.laz"])
+def test_cli_decompress_writes_a_wkt_crs_given_through_the_api_to_las(run_cli, tiny_model_dir, tmp_path, name):
+    """A WKT given as metadata["crs"] to the API, without LAS records, is written to LAS/LAZ as a WKT record (global
+    encoding's WKT bit set) and read back as the same CRS; no warning."""
+    import mapsqueeze
+
+    points = np.random.default_rng(0).uniform(0, 5, (300, 3))
+    (tmp_path / "a.msq").write_bytes(mapsqueeze.compress(points, model=tiny_model_dir,
+                                                         metadata={"crs": WKT_UTM32}))
+    code, _, err = run_cli("decompress", str(tmp_path / "a.msq"), "-o", str(tmp_path / name), "--model",
+                           str(tiny_model_dir))
+    assert code == 0 and err == "", err
+    header = laspy.read(tmp_path / name).header
+    assert [vlr.record_id for vlr in header.vlrs if vlr.user_id == "LASF_Projection"] == [2112]
+    assert header.global_encoding.wkt
+    assert read_point_cloud(tmp_path / name).metadata["crs"] == WKT_UTM32
+
+
+def test_cli_decompress_warns_that_las_cannot_take_an_epsg_code_alone(run_cli, tiny_model_dir, tmp_path):
+    """An EPSG code given as metadata["crs"] to the API has no LAS record to be written as (that needs its WKT or
+    GeoTIFF keys): the LAS is written without it, and a warning says so."""
+    import mapsqueeze
+
+    points = np.random.default_rng(0).uniform(0, 5, (300, 3))
+    (tmp_path / "a.msq").write_bytes(mapsqueeze.compress(points, model=tiny_model_dir,
+                                                         metadata={"crs": "EPSG:32632"}))
+    code, _, err = run_cli("decompress", str(tmp_path / "a.msq"), "-o", str(tmp_path / "d.las"), "--model",
+                           str(tiny_model_dir))
+    assert code == 0 and err == ("warning: d.las cannot hold the CRS (EPSG:32632) as given: LAS takes a WKT or the "
+                                 "LAS records it was read from; not written\n"), err
+    assert "crs" not in read_point_cloud(tmp_path / "d.las").metadata
+
+
 def coloured_cloud(n: int = 600, seed: int = 3) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Points on a 12 x 12 m ground with 8-bit colour (uint8, every value 0..255 present) and a uint16 intensity."""
     rng = np.random.default_rng(seed)

@@ -6,7 +6,7 @@ import typer
 
 from mapsqueeze.cli.app import FORMAT_HELP, app, counted, nan_points_line, print_line
 from mapsqueeze.io import (
-    check_output_path, dropped_fields, format_name, holds_metadata, read_point_cloud, write_points,
+    check_output_path, dropped_fields, format_name, holds_crs, holds_metadata, read_point_cloud, write_points,
 )
 
 
@@ -39,7 +39,9 @@ def warn_dropped(names, output_path: Path, out_format: str | None = None, metada
         print_line(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; not written",
                    stderr=True)
     crs = (metadata or {}).get("crs")
-    if crs and not holds_metadata(output_path, out_format):
+    if crs and not holds_crs(metadata, output_path, out_format):
         text = str(crs)
         shown = "a WKT" if "[" in text else text
-        print_line(f"warning: {output_path.name} cannot hold the CRS ({shown}); not written", stderr=True)
+        given = (" as given: LAS takes a WKT or the LAS records it was read from"
+                 if holds_metadata(output_path, out_format) else "")
+        print_line(f"warning: {output_path.name} cannot hold the CRS ({shown}){given}; not written", stderr=True)

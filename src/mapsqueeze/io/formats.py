@@ -133,6 +133,16 @@ def holds_metadata(path: str | os.PathLike, format: str | None = None) -> bool:
     return FORMATS[format_name(path, format)].metadata
 
 
+def holds_crs(metadata: dict, path: str | os.PathLike, format: str | None = None) -> bool:
+    """Whether a file of this format, written with `metadata`, keeps its CRS (`metadata["crs"]`): LAS/LAZ from the
+    LAS records it was read from or from a WKT (io.las.keeps_crs), no other format."""
+    if not holds_metadata(path, format):
+        return False
+    from mapsqueeze.io import las
+
+    return las.keeps_crs(metadata)
+
+
 def _existing_file(path: str | os.PathLike) -> Path:
     path = Path(path)
     if path.is_dir():

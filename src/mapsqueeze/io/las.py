@@ -7,7 +7,8 @@ declares scales). The bit flags (synthetic, key-point, withheld, overlap, scan d
 scanner channel) are not read. Metadata (`PointCloud.metadata["las"]`): version, point format, scales, offsets,
 system identifier, the VLRs and EVLRs other than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double
 params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions' descriptions, types, scales and offsets;
-`metadata["crs"]` is a readable summary (`EPSG:32632` from the GeoKeyDirectory, or the WKT).
+`metadata["crs"]` is a readable summary (`EPSG:32632` from the GeoKeyDirectory, or the WKT). A `metadata["crs"]`
+without CRS records (given through the API) is written as a WKT record where it is a WKT, and not at all otherwise.
 
 Writing: the point format is the metadata's when it holds every standard field given, else the first of 0, 1, 2,
 3, 6, 7, 8 that does; standard fields must fit their LAS type exactly. Scale and offset are the metadata's when
@@ -21,6 +22,7 @@ of any other dtype as they are. Read colour stays 16-bit whatever the writer aft
 """
 
 import base64
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -47,6 +49,8 @@ _WRITE_FORMATS = (0, 1, 2, 3, 6, 7, 8)
 _INTEGER_LIMIT = 2**31 - 1
 _MANAGED_RECORDS = {("LASF_Spec", 4), ("laszip encoded", 22204), ("LASF_Spec", 7)}  # laspy writes these itself
 _PROJECTED_CRS_KEY, _GEOGRAPHIC_CRS_KEY = 3072, 2048
+_CRS_RECORDS = {("LASF_Projection", 34735), ("LASF_Projection", 2112)}  # GeoKeyDirectory, WKT
+_WKT = re.compile(r"\s*[A-Za-z_]+\s*\[")
 _ERRORS = (laspy.errors.LaspyException, lazrs.LazrsError, ValueError, EOFError)
 
 
@@ -66,6 +70,28 @@ def _crs_summary(records: list) -> str | None:
         if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
             return vlr.string.strip("\0 ")
     return None
+
+
+def _holds_crs_records(las: dict) -> bool:
+    """Whether the LAS records of `metadata["las"]` include a CRS (GeoKeyDirectory or WKT)."""
+    return any((r["user_id"], r["record_id"]) in _CRS_RECORDS for r in las.get("vlrs", []) + las.get("evlrs", []))
+
+
+def _given_wkt(metadata: dict) -> str | None:
+    """metadata["crs"] where it is a WKT string and the LAS records hold no CRS (e.g. a CRS given through the API):
+    the WKT to write as a record."""
+    crs = metadata.get("crs")
+    if isinstance(crs, str) and _WKT.match(crs) and not _holds_crs_records(metadata.get("las", {})):
+        return crs
+    return None
+
+
+def keeps_crs(metadata: dict) -> bool:
+    """Whether write_las keeps metadata["crs"]: as the LAS records it was read from, or as a WKT record. An EPSG code
+    alone ("EPSG:32632") is not written: LAS needs the CRS's WKT or GeoTIFF keys, which the code alone does not
+    give without a projection database."""
+    return ("crs" not in metadata or _holds_crs_records(metadata.get("las", {}))
+            or _given_wkt(metadata) is not None)
 
 
 def _metadata(header: laspy.LasHeader, evlrs: list) -> dict:
@@ -173,7 +199,10 @@ def _header(stats: CloudStats) -> laspy.LasHeader:
     if las.get("evlrs") and header.version.minor >= 4:
         header.evlrs = [laspy.VLR(r["user_id"], r["record_id"], r["description"], base64.b64decode(r["data"]))
                         for r in las["evlrs"]]
-    if las.get("wkt") and header.version.minor >= 4:
+    wkt = _given_wkt(stats.metadata)
+    if wkt:
+        header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(wkt))
+    if (las.get("wkt") or wkt) and header.version.minor >= 4:
         header.global_encoding.wkt = True
     standard = set(header.point_format.dimension_names)
     described = las.get("extra_bytes", {})
