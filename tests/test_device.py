@@ -11,7 +11,7 @@ from test_inference import FEATURE_TOLERANCE, POINT_TOLERANCE, street_tile
 from mapsqueeze.data.mapping import Submap, write_dataset
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.model import ModelConfig, load_model, load_network
-from mapsqueeze.model.devices import CUBLAS_WORKSPACE, torch_device
+from mapsqueeze.model.devices import CUBLAS_WORKSPACE, same_device, torch_device
 from mapsqueeze.model.refine import FEATURE_LR, POSITION_LR
 from mapsqueeze.model.refinetorch import _deterministic
 from mapsqueeze.model.shipped import SHIPPED_DIR
@@ -128,6 +128,24 @@ def test_a_device_name_is_checked_before_any_work(monkeypatch):
         torch_device("cuda", processes=2)
     assert torch_device("cuda") == torch.device("cuda")
     assert torch.cuda.is_available() and __import__("os").environ["CUBLAS_WORKSPACE_CONFIG"] == CUBLAS_WORKSPACE
+
+
+def test_cuda_and_the_index_of_the_current_gpu_are_one_device_for_a_loaded_model(monkeypatch):
+    """A model loaded on "cuda" runs on the current GPU: given device "cuda:0" while GPU 0 is current it is taken, on
+    "cuda:1" it is refused (two GPUs seen, none there: torch.cuda answers as on a two-GPU machine)."""
+    from mapsqueeze.api import _device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    model = load_model("e0")
+    model.device = "cuda"
+    assert same_device("cuda", "cuda:0") and not same_device("cuda", "cuda:1") and not same_device("cpu", "cuda")
+    assert _device("cuda:0", model, None) == "cuda:0"
+    with pytest.raises(MapsqueezeError, match="runs on 'cuda', not on device 'cuda:1'"):
+        _device("cuda:1", model, None)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 1)
+    assert _device("cuda:1", model, None) == "cuda:1"
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")

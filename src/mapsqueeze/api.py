@@ -80,7 +80,7 @@ def _device(device: str, model, dask_scheduler: str | None) -> str:
     one other than a given CompressionModel's own."""
     if str(device) == "cpu":
         return "cpu"
-    from mapsqueeze.model.devices import device_name
+    from mapsqueeze.model.devices import device_name, same_device
 
     name = device_name(device)
     if name == "cpu":
@@ -90,7 +90,7 @@ def _device(device: str, model, dask_scheduler: str | None) -> str:
                               "which may have no GPU; give a device or a cluster (--dask-scheduler), not both")
     if model is not None and not isinstance(model, (str, os.PathLike)):
         own = device_name(getattr(model, "device", "cpu"))
-        if own != name:
+        if not same_device(own, name):
             raise MapsqueezeError(f"the given model {getattr(model, 'model_id', '')!r} runs on {own!r}, not on device "
                                   f"{name!r}: give its name or directory, or load it there "
                                   f"(load_model(name, device={name!r}))")

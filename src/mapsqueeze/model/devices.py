@@ -48,3 +48,19 @@ def device_name(name: str) -> str:
         return "cpu"
     device = torch_device(str(name))
     return "cpu" if device.type == "cpu" else str(device)
+
+
+def same_device(first: str, second: str) -> bool:
+    """Whether two checked device names (`device_name`) name one device: "cuda" is the current GPU
+    (torch.cuda.current_device()), so "cuda" and "cuda:0" are one where GPU 0 is current."""
+    if first == second:
+        return True
+    if "cpu" in (first, second):
+        return False
+    import torch
+
+    def resolved(name: str) -> torch.device:
+        device = torch.device(name)
+        return torch.device("cuda", torch.cuda.current_device()) if device.index is None else device
+
+    return resolved(first) == resolved(second)
