@@ -202,6 +202,12 @@ def test_report_names_the_codecs_of_a_partial_front():
     assert markdown_report(rows + every).count(f"the full classical front ({', '.join(classical_codecs())})") == 3
     learned_only = markdown_report([rows[-1]])
     assert learned_only.count(f"a classical front (none ran of {', '.join(classical_codecs())})") == 3
+    park = [_row("park", codec, "x", 0.3, 0.2) for codec in classical_codecs() if codec != "gpcc"]
+    park.append(_row("park", "mapsqueeze", "e1,q", 0.2, 0.07))
+    gpcc_not_on_park = markdown_report(rows + every + park)  # every codec ran, but not every codec on every cloud
+    assert "full classical front" not in gpcc_not_on_park
+    assert gpcc_not_on_park.count(f"the classical front of {', '.join(classical_codecs())}; gpcc not run on park") == 3
+    assert "not run on" not in markdown_report(rows + every)
 
 
 def test_size_band_comparison_groups_clouds_by_point_count():

@@ -67,16 +67,25 @@ def _verdict(c: Comparison) -> str:
 
 
 def front_name(rows: list[Row]) -> str:
-    """The classical front these rows make: "the full classical front (codecs)" when every registered baseline ran,
-    else the codecs that ran and those that did not (a front of fewer codecs is easier to beat)."""
+    """The classical front these rows make: "the full classical front (codecs)" when every registered baseline ran
+    on every cloud with a learned row, else the codecs that ran and those that did not, and the clouds a codec that
+    ran elsewhere did not run on (a front of fewer codecs is easier to beat)."""
     registered = classical_codecs()
     ran = [codec for codec in registered if any(r.codec == codec for r in rows)]
-    if len(ran) == len(registered):
-        return f"the full classical front ({', '.join(ran)})"
     if not ran:
         return f"a classical front (none ran of {', '.join(registered)})"
+    learned_clouds = dict.fromkeys(r.cloud for r in rows if r.codec not in registered)
+    gaps = []
+    for cloud in learned_clouds:
+        missing = [codec for codec in ran if not any(r.cloud == cloud and r.codec == codec for r in rows)]
+        if missing:
+            gaps.append(f"{', '.join(missing)} not run on {cloud}")
+    gaps_text = f"; {'; '.join(gaps)}" if gaps else ""
+    if len(ran) == len(registered):
+        return (f"the full classical front ({', '.join(ran)}){gaps_text}" if not gaps
+                else f"the classical front of {', '.join(ran)}{gaps_text}")
     missing = [codec for codec in registered if codec not in ran]
-    return f"the classical front of {', '.join(ran)} only ({', '.join(missing)} not run)"
+    return f"the classical front of {', '.join(ran)} only ({', '.join(missing)} not run{gaps_text})"
 
 
 def front_table(comparisons: list[Comparison], front: str) -> list[str]:
