@@ -109,7 +109,9 @@ for rate in "${rates[@]}"; do
 done
 if (( ${#best[@]} )); then
     # tar names the folders e0 ... e3 (each a model folder: config.json, model.safetensors)
-    tar -cf "$out/models.tar" --transform 's,/best,,' -C "$out" "${best[@]/%//best}"
+    # written to a temporary name and renamed, so that models.tar is whole or absent
+    tar -cf "$out/models.tar.partial" --transform 's,/best,,' -C "$out" "${best[@]/%//best}"
+    mv -f "$out/models.tar.partial" "$out/models.tar"
     echo "wrote $out/models.tar: ${best[*]}"
 fi
 exit $failed

@@ -28,6 +28,7 @@ def test_retrain_simulates_trains_and_packs_a_model_that_loads(tmp_path):
     assert "e1: 1 steps" in run.stdout
     summary = json.loads((tmp_path / "run" / "e1" / "summary.json").read_text())
     assert summary["steps"] == 1
+    assert sorted(path.name for path in (tmp_path / "run").glob("models.tar*")) == ["models.tar"]  # renamed whole
     with tarfile.open(tmp_path / "run" / "models.tar") as tar:
         assert sorted(tar.getnames()) == ["e1", "e1/config.json", "e1/model.safetensors"]
         tar.extractall(tmp_path / "models", filter="data")
