@@ -71,7 +71,10 @@ def test_laz_constant_fields_decode_exactly_and_other_fields_as_before(laz_map, 
     cloud = read_point_cloud(laz_map / "map.laz")
     assert data == mapsqueeze.compress(cloud.points, attributes=cloud.attributes, metadata=cloud.metadata)
     kinds = {spec.name: spec.kind for spec in mapsqueeze.info(data).attribute_schema.specs}
-    constants = {"user_data", "point_source_id", "gps_time", "return_number", "number_of_returns", "scan_angle"}
+    flags = {"scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld", "overlap",
+             "scanner_channel"}  # the LAS bit fields, all 0 here
+    constants = {"user_data", "point_source_id", "gps_time", "return_number", "number_of_returns", "scan_angle",
+                 *flags}
     assert {name for name, kind in kinds.items() if kind == CONSTANT} == constants
     assert "point_source_id (uint16, constant 7)" in mapsqueeze.info(data).attribute_summary()
 
@@ -89,9 +92,10 @@ def test_laz_constant_fields_decode_exactly_and_other_fields_as_before(laz_map, 
                                                                metadata=cloud.metadata))
     assert old[4:6] == struct.pack("<H", 7)
     # the schema: 16 bytes of low and step less the value's (1 + 1 + 1 + 2 + 2 + 8: return and return count,
-    # user_data, point_source_id, scan_angle, gps_time); each of 2 tiles: the tables of 4 categorical fields (a
-    # one-value palette, 2 bytes, two one-value histograms of 4) and of 2 continuous ones (three histograms)
-    assert len(old) - len(data) == (6 * 16 - 15) + 2 * (4 * (2 + 2 * 4) + 2 * 3 * 4) == 209
+    # user_data, point_source_id, scan_angle, gps_time; 1 each for the 7 bit fields); each of 2 tiles: the tables of
+    # 11 categorical fields (a one-value palette, 2 bytes, two one-value histograms of 4) and of 2 continuous ones
+    # (three histograms)
+    assert len(old) - len(data) == (13 * 16 - 15 - 7) + 2 * (11 * (2 + 2 * 4) + 2 * 3 * 4) == 454
     old_decoded, new_decoded = mapsqueeze.decompress_cloud(old), mapsqueeze.decompress_cloud(data)
     np.testing.assert_array_equal(old_decoded.points, new_decoded.points)
     assert list(new_decoded.attributes) == list(old_decoded.attributes)

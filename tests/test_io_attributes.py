@@ -81,6 +81,40 @@ def test_las_round_trip_keeps_fields_format_scales_and_crs_records(tmp_path):
     assert again.header.point_format.dimension_by_name("laser").description.strip("\0") == "laser number"
 
 
+LAS_FLAGS = {3: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld"),
+             6: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld", "overlap",
+                 "scanner_channel")}
+
+
+@pytest.mark.parametrize("point_format", [3, 6])
+def test_las_bit_flags_are_read_and_written_back_exactly(tmp_path, point_format):
+    """The bit fields (scan direction, edge of flight line, synthetic, key-point, withheld; in formats 6-10 overlap
+    and scanner channel) are uint8 attributes, kept exactly through LAS -> PLY -> LAS; the classification beside
+    them is unchanged."""
+    n, rng = 500, np.random.default_rng(1)
+    header = laspy.LasHeader(version="1.4", point_format=point_format)
+    header.scales, header.offsets = np.full(3, 0.001), UTM
+    las = laspy.LasData(header)
+    xyz = UTM + rng.uniform(0, 30, (n, 3))
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.classification = rng.choice([2, 6, 31], n)
+    flags = {name: rng.integers(0, 4 if name == "scanner_channel" else 2, n) for name in LAS_FLAGS[point_format]}
+    for name, values in flags.items():
+        las[name] = values
+    las.write(str(tmp_path / "a.las"))
+    cloud = read_point_cloud(tmp_path / "a.las")
+    for name, values in flags.items():
+        assert cloud.attributes[name].dtype == np.uint8
+        np.testing.assert_array_equal(cloud.attributes[name], values, err_msg=name)
+    write_points(tmp_path / "a.ply", cloud.points, attributes=cloud.attributes)
+    plain = read_point_cloud(tmp_path / "a.ply")
+    write_points(tmp_path / "b.las", plain.points, attributes=plain.attributes, metadata=cloud.metadata)
+    again = laspy.read(tmp_path / "b.las")
+    assert again.header.point_format.id == point_format
+    for name in (*flags, "classification"):
+        np.testing.assert_array_equal(np.asarray(again[name]), np.asarray(las[name]), err_msg=name)
+
+
 def test_las_point_format_follows_the_fields_when_there_is_no_metadata(tmp_path):
     n = 50
     points = np.random.default_rng(0).random((n, 3))

@@ -2,9 +2,9 @@
 
 Attributes read: the point format's standard fields `intensity`, `return_number`, `number_of_returns`,
 `classification`, `scan_angle_rank` (formats 0-5) or `scan_angle` (6-10), `user_data`, `point_source_id`, and where
-the format has them `gps_time`, `red`, `green`, `blue`, `nir`; then every extra-bytes dimension (scaled when it
-declares scales). The bit flags (synthetic, key-point, withheld, overlap, scan direction, edge of flight line,
-scanner channel) are not read. Metadata (`PointCloud.metadata["las"]`): version, point format, scales, offsets,
+the format has them `gps_time`, `red`, `green`, `blue`, `nir`; its bit fields `scan_direction_flag`,
+`edge_of_flight_line`, `synthetic`, `key_point`, `withheld`, and in formats 6-10 `overlap` and `scanner_channel`
+(uint8 each); then every extra-bytes dimension (scaled when it declares scales). Metadata (`PointCloud.metadata["las"]`): version, point format, scales, offsets,
 system identifier, the VLRs and EVLRs other than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double
 params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions' descriptions, types, scales and offsets;
 `metadata["crs"]` is a readable summary (`EPSG:32632` from the GeoKeyDirectory, or the WKT). A `metadata["crs"]`
@@ -38,7 +38,9 @@ LAS_SCALE_M = 1e-4
 """LAS/LAZ coordinate resolution in metres (quantisation error at most half of it)."""
 
 STANDARD_FIELDS = ("intensity", "return_number", "number_of_returns", "classification", "scan_angle_rank",
-                   "scan_angle", "user_data", "point_source_id", "gps_time", "red", "green", "blue", "nir")
+                   "scan_angle", "user_data", "point_source_id", "gps_time", "red", "green", "blue", "nir",
+                   "scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld", "overlap",
+                   "scanner_channel")
 """Standard LAS point fields read and written as attributes (those the point format has)."""
 COLOUR_FIELDS = ("red", "green", "blue", "nir")
 """The standard fields holding 16-bit colour."""
