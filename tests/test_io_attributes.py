@@ -248,7 +248,8 @@ def test_cli_decompress_warns_of_a_crs_the_api_stored_as_any_value(run_cli, tiny
     assert code == 0 and err == f"warning: d.ply cannot hold the CRS ({shown}); not written\n", err
 
 
-WKT_UTM32 = ('PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+WKT_UTM32 = ('PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84",DATUM["WGS_1984",'
+             'SPHEROID["WGS 84",6378137,298.257223563]],'
              'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
              'PARAMETER["central_meridian",9],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],'
              'UNIT["metre",1],AUTHORITY["EPSG","32632"]]')

@@ -82,8 +82,8 @@ def front_name(rows: list[Row]) -> str:
             gaps.append(f"{', '.join(missing)} not run on {cloud}")
     gaps_text = f"; {'; '.join(gaps)}" if gaps else ""
     if len(ran) == len(registered):
-        return (f"the full classical front ({', '.join(ran)}){gaps_text}" if not gaps
-                else f"the classical front of {', '.join(ran)}{gaps_text}")
+        return (f"the classical front of {', '.join(ran)}{gaps_text}" if gaps
+                else f"the full classical front ({', '.join(ran)})")
     missing = [codec for codec in registered if codec not in ran]
     return f"the classical front of {', '.join(ran)} only ({', '.join(missing)} not run{gaps_text})"
 

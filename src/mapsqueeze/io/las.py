@@ -4,9 +4,9 @@ Attributes read: the point format's standard fields `intensity`, `return_number`
 `classification`, `scan_angle_rank` (formats 0-5) or `scan_angle` (6-10), `user_data`, `point_source_id`, and where
 the format has them `gps_time`, `red`, `green`, `blue`, `nir`; its bit fields `scan_direction_flag`,
 `edge_of_flight_line`, `synthetic`, `key_point`, `withheld`, and in formats 6-10 `overlap` and `scanner_channel`
-(uint8 each); then every extra-bytes dimension (scaled when it declares scales). Metadata (`PointCloud.metadata["las"]`): version, point format, scales, offsets,
-system identifier, the VLRs and EVLRs other than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double
-params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions' descriptions, types, scales and offsets;
+(uint8 each); then every extra-bytes dimension (scaled when it declares scales). Metadata
+(`PointCloud.metadata["las"]`): version, point format, scales, offsets, system identifier, the VLRs and EVLRs other
+than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions' descriptions, types, scales and offsets;
 `metadata["crs"]` is a readable summary (`EPSG:32632` from the GeoKeyDirectory, or the WKT). A `metadata["crs"]`
 without CRS records (given through the API) is written as a WKT record where it is a WKT, and not at all otherwise.
 

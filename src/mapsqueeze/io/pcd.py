@@ -3,8 +3,8 @@ DATA ascii and binary.
 
 Fields with COUNT k > 1 become attributes `name_0` .. `name_{k-1}`; padding fields named `_` are dropped.
 PCL's packed colour, `rgb` (a float32 in pcl::PointXYZRGB, a NaN bit pattern when alpha is 255; in ascii, as PCL writes
-it, the bits as an unsigned integer, or else the floats' values) or `rgba` (uint32), 0xAARRGGBB, is read as uint8 attributes `red`, `green`,
-`blue` (and `alpha` for rgba) and written back packed the same way.
+it, the bits as an unsigned integer, or else the floats' values) or `rgba` (uint32), 0xAARRGGBB, is read as uint8
+attributes `red`, `green`, `blue` (and `alpha` for rgba) and written back packed the same way.
 Points whose x, y or z is NaN, the "no return" marker of organised clouds written by PCL and ROS drivers, are left
 out with their attributes and counted (`PointCloud.nan_points_dropped`); infinite coordinates are refused.
 DATA binary_compressed (pcl::io::savePCDFileBinaryCompressed, Autoware maps) is a uint32 compressed size, a uint32
