@@ -240,3 +240,21 @@ def test_integer_lidar_measurements_of_driver_pcds_are_continuous(name, dtype):
         summary.attribute_summary()
     labels = mapsqueeze.info(mapsqueeze.compress(points, attributes={"label": values % 20}))
     assert "majority" in labels.attribute_summary()
+
+
+def test_categorical_attribute_with_more_values_than_voxels_decodes():
+    """An integer id per point (more distinct values in a tile than the tile has attribute voxels) is coded with a
+    palette of the values the voxels take, so the file decodes; before, the encoder wrote every input value into the
+    palette and the decoder, which bounds a palette by the voxel count, refused the file it had been given."""
+    points, _, classification, _ = street(6000, 2000)
+    point_id = np.arange(len(points), dtype=np.uint32)
+    data = mapsqueeze.compress(points, attributes={"point_id": point_id, "cls": classification})
+    cloud = mapsqueeze.decompress_cloud(data, n_points=len(points))
+    assert cloud.attributes["point_id"].dtype == np.uint32
+    nearest = nearest_original(points, cloud.points)
+    decoded_ids = np.unique(cloud.attributes["point_id"])
+    assert len(decoded_ids) > 100 and np.isin(decoded_ids, point_id).all()
+    # an id names one input point: the one it names lies within a voxel (1 m) and a half of the decoded point
+    gap = np.linalg.norm(points[cloud.attributes["point_id"].astype(np.int64)] - points[nearest], axis=1)
+    assert np.median(gap) < 1.5, np.median(gap)
+    assert_quality(points, cloud.points, {"cls": classification}, cloud.attributes, categorical=("cls",))

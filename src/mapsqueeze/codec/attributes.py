@@ -247,10 +247,15 @@ def _voxel_medians(values: np.ndarray, voxel: np.ndarray, n_voxels: int) -> np.n
 
 
 def _voxel_modes(symbols: np.ndarray, voxel: np.ndarray, n_voxels: int) -> np.ndarray:
-    """Most frequent symbol of each voxel (the smallest one on ties)."""
-    n_symbols = int(symbols.max()) + 1
-    pair_counts = np.bincount(voxel * n_symbols + symbols, minlength=n_voxels * n_symbols)
-    return pair_counts.reshape(n_voxels, n_symbols).argmax(axis=1)
+    """Most frequent symbol of each voxel (the smallest one on ties); every voxel has at least one symbol. Memory
+    grows with the number of (voxel, symbol) pairs, not with voxels x symbols."""
+    pairs, counts = np.unique(voxel.astype(np.int64) * (int(symbols.max()) + 1) + symbols, return_counts=True)
+    pair_voxel, pair_symbol = np.divmod(pairs, int(symbols.max()) + 1)
+    best = np.lexsort((-counts, pair_voxel))  # stable: within a voxel, the largest count, then the smallest symbol
+    first = np.concatenate([[True], np.diff(pair_voxel[best]) != 0])
+    modes = np.empty(n_voxels, dtype=np.int64)
+    modes[pair_voxel[best][first]] = pair_symbol[best][first]
+    return modes
 
 
 def encode_tile_attributes(support: np.ndarray, points_local: np.ndarray, attributes: dict[str, np.ndarray],
@@ -275,16 +280,18 @@ def encode_tile_attributes(support: np.ndarray, points_local: np.ndarray, attrib
             quantised = np.round((values - spec.low) / spec.step).astype(np.int64)
             encode_integers(writer, symbols, lod, _voxel_medians(quantised, members, len(codes)))
         else:
-            palette, symbol = np.unique(values, return_inverse=True)
+            values, symbol = np.unique(values, return_inverse=True)
+            used, modes = np.unique(_voxel_modes(symbol.ravel(), members, len(codes)), return_inverse=True)
+            palette = values[used].astype(np.int64)  # the values some voxel takes: at most one per voxel
             if len(palette) > MAX_PALETTE:
-                raise InvalidPointCloudError(f"attribute {spec.name!r} has {len(palette):,} distinct values in one "
-                                             f"tile, more than the {MAX_PALETTE:,} a categorical attribute may")
-            palette = palette.astype(np.int64)
+                raise InvalidPointCloudError(f"attribute {spec.name!r} takes {len(palette):,} distinct values over "
+                                             f"one tile's voxels, more than the {MAX_PALETTE:,} a categorical "
+                                             f"attribute may (a coarser --attribute-voxel has fewer)")
             writer.varint(len(palette))
             writer.svarint(int(palette[0]))
             for gap in np.diff(palette):
                 writer.varint(int(gap))
-            encode_categories(writer, symbols, lod, _voxel_modes(symbol.ravel(), members, len(codes)), len(palette))
+            encode_categories(writer, symbols, lod, modes.ravel(), len(palette))
     writer.raw(symbols.getvalue())
     return writer.getvalue()
 
