@@ -81,6 +81,41 @@ def test_las_round_trip_keeps_fields_format_scales_and_crs_records(tmp_path):
     assert again.header.point_format.dimension_by_name("laser").description.strip("\0") == "laser number"
 
 
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_evlrs_are_written_back_after_the_points(tmp_path, suffix):
+    """A WKT CRS (and any other record) stored as an EVLR is written back as one, with the WKT bit; before, the
+    streaming writer dropped header.evlrs and kept the WKT bit, a file that declares a WKT it does not hold."""
+    wkt = 'PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84"],UNIT["metre",1]]'
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales, header.offsets = np.full(3, 0.001), UTM
+    header.global_encoding.wkt = True
+    las = laspy.LasData(header)
+    xyz = UTM + np.random.default_rng(2).uniform(0, 30, (300, 3))
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.vlrs.known.WktCoordinateSystemVlr(wkt),
+                                            laspy.VLR("acme", 7, "notes", b"a long record" * 10)])
+    las.write(str(tmp_path / f"a{suffix}"))
+    cloud = read_point_cloud(tmp_path / f"a{suffix}")
+    assert cloud.metadata["crs"] == wkt
+    write_points(tmp_path / f"b{suffix}", cloud.points, attributes=cloud.attributes, metadata=cloud.metadata)
+    again = laspy.read(tmp_path / f"b{suffix}")
+    assert again.header.global_encoding.wkt and len(again.points) == 300
+    assert [(vlr.user_id, vlr.record_id) for vlr in again.evlrs] == [("LASF_Projection", 2112), ("acme", 7)]
+    assert again.evlrs[0].string.strip("\0") == wkt and again.evlrs[1].record_data_bytes() == b"a long record" * 10
+    np.testing.assert_array_equal(again.X, las.X)
+    assert read_point_cloud(tmp_path / f"b{suffix}").metadata["crs"] == wkt
+
+
+def test_las_evlrs_make_the_file_version_1_4(tmp_path):
+    """EVLRs read from a LAS 1.4 file in point format 3 keep version 1.4 even where the metadata says 1.2."""
+    cloud = PointCloud(UTM + np.random.default_rng(3).uniform(0, 30, (100, 3)), {}, {"las": {
+        "version": "1.2", "point_format": 3, "evlrs": [{"user_id": "acme", "record_id": 1, "description": "",
+                                                        "data": "AAEC"}]}})
+    write_points(tmp_path / "a.las", cloud.points, metadata=cloud.metadata)
+    again = laspy.read(tmp_path / "a.las")
+    assert str(again.header.version) == "1.4" and again.evlrs[0].record_data_bytes() == bytes([0, 1, 2])
+
+
 LAS_FLAGS = {3: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld"),
              6: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld", "overlap",
                  "scanner_channel")}

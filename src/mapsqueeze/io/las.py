@@ -28,6 +28,7 @@ from pathlib import Path
 
 import laspy
 import lazrs
+from laspy.vlrs.vlrlist import VLRList
 import numpy as np
 
 from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
@@ -179,10 +180,12 @@ def _fits(scales: np.ndarray, offsets: np.ndarray, stats: CloudStats) -> bool:
     return bool((np.abs(low) < _INTEGER_LIMIT).all() and (np.abs(high) < _INTEGER_LIMIT).all())
 
 
-def _header(stats: CloudStats) -> laspy.LasHeader:
+def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList]:
+    """The header to write and the EVLRs to write after the points (the streaming writer leaves header.evlrs out).
+    A file with EVLRs is LAS 1.4, the first version with EVLRs."""
     las = stats.metadata.get("las", {})
     point_format = _point_format(stats, las.get("point_format"))
-    version = las.get("version", "1.4") if point_format < 6 else "1.4"
+    version = las.get("version", "1.4") if point_format < 6 and not las.get("evlrs") else "1.4"
     header = laspy.LasHeader(version=version if version in ("1.2", "1.3", "1.4") else "1.4",
                              point_format=point_format)
     scales, offsets = np.asarray(las.get("scales", [0.0] * 3)), np.asarray(las.get("offsets", [0.0] * 3))
@@ -198,9 +201,8 @@ def _header(stats: CloudStats) -> laspy.LasHeader:
         header.system_identifier = las["system_identifier"]
     header.vlrs.extend(laspy.VLR(r["user_id"], r["record_id"], r["description"], base64.b64decode(r["data"]))
                        for r in las.get("vlrs", []))
-    if las.get("evlrs") and header.version.minor >= 4:
-        header.evlrs = [laspy.VLR(r["user_id"], r["record_id"], r["description"], base64.b64decode(r["data"]))
-                        for r in las["evlrs"]]
+    evlrs = VLRList(laspy.VLR(r["user_id"], r["record_id"], r["description"], base64.b64decode(r["data"]))
+                          for r in las.get("evlrs", []))
     wkt = _given_wkt(stats.metadata)
     if wkt:
         header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(wkt))
@@ -221,11 +223,11 @@ def _header(stats: CloudStats) -> laspy.LasHeader:
         else:
             params.append(laspy.ExtraBytesParams(name, dtype, info.get("description", "")))
     header.add_extra_dims(params)
-    return header
+    return header, evlrs
 
 
 def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool) -> tuple[str, ...]:
-    header = _header(stats)
+    header, evlrs = _header(stats)
     standard = set(header.point_format.dimension_names)
     try:
         with atomic_output(path) as temp, open(temp, "wb") as stream, \
@@ -248,6 +250,7 @@ def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool
                     else:
                         record[name] = values
                 writer.write_points(record)
+            writer.write_evlrs(evlrs)
     except (laspy.errors.LaspyException, OverflowError) as exc:
         raise InvalidPointCloudError(f"cannot write LAS ({exc})") from None
     return tuple(stats.dtypes)
