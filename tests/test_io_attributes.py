@@ -3,13 +3,14 @@
 import struct
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import laspy
 import numpy as np
 import pytest
 
-from mapsqueeze.errors import InvalidPointCloudError
+from mapsqueeze.errors import FieldRenamedWarning, InvalidPointCloudError
 from mapsqueeze.io import (
     PointCloud,
     dropped_fields,
@@ -114,6 +115,51 @@ def test_las_evlrs_make_the_file_version_1_4(tmp_path):
     write_points(tmp_path / "a.las", cloud.points, metadata=cloud.metadata)
     again = laspy.read(tmp_path / "a.las")
     assert str(again.header.version) == "1.4" and again.evlrs[0].record_data_bytes() == bytes([0, 1, 2])
+
+
+def test_las_point_format_is_the_first_whose_fields_hold_the_values(tmp_path):
+    """Classification 40 (a PLY or PCD label) needs point format 6 (0..255; formats 0-5 hold 0..31): the format is
+    chosen by the values, where before the write was refused. A LAS file's own format stays where it holds them."""
+    points = UTM + np.random.default_rng(4).uniform(0, 30, (200, 3))
+    classification = np.arange(200, dtype=np.uint16) % 41
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert write_points(tmp_path / "a.las", points, attributes={"classification": classification}) \
+            == ("classification",)
+    again = laspy.read(tmp_path / "a.las")
+    assert again.header.point_format.id == 6 and str(again.header.version) == "1.4"
+    np.testing.assert_array_equal(again.classification, classification)
+    write_points(tmp_path / "b.las", points, attributes={"classification": classification % 32})
+    assert laspy.read(tmp_path / "b.las").header.point_format.id == 0
+    las3 = {"las": {"version": "1.2", "point_format": 3}}
+    write_points(tmp_path / "c.las", points, attributes={"classification": classification}, metadata=las3)
+    assert laspy.read(tmp_path / "c.las").header.point_format.id == 6
+    write_points(tmp_path / "d.las", points, attributes={"classification": classification % 32}, metadata=las3)
+    assert laspy.read(tmp_path / "d.las").header.point_format.id == 3
+
+
+def test_las_field_that_cannot_hold_the_values_is_written_as_an_extra_dimension(tmp_path, run_cli):
+    """A float intensity (PCL's PointXYZI; KITTI's 0..1 reflectance) is no LAS intensity (an integer in 0..65535):
+    it is written exactly as the extra dimension intensity_float32, with a FieldRenamedWarning (one warning line in
+    the CLI); a float intensity of whole numbers in range stays the standard field."""
+    points = UTM + np.random.default_rng(5).uniform(0, 30, (300, 3))
+    intensity = np.random.default_rng(6).random(300).astype(np.float32)
+    with pytest.warns(FieldRenamedWarning, match="attribute 'intensity' \\(float32\\) is not; written as the extra "
+                                                 "dimension 'intensity_float32'"):
+        stored = write_points(tmp_path / "a.laz", points, attributes={"intensity": intensity, "ring": np.zeros(300)})
+    assert stored == ("intensity_float32", "ring")
+    cloud = read_point_cloud(tmp_path / "a.laz")
+    np.testing.assert_array_equal(cloud.attributes["intensity_float32"], intensity)
+    assert not cloud.attributes["intensity"].any()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_points(tmp_path / "b.las", points, attributes={"intensity": np.round(intensity * 1000)})
+    np.testing.assert_array_equal(laspy.read(tmp_path / "b.las").intensity, np.round(intensity * 1000))
+    write_points(tmp_path / "scan.ply", points, attributes={"intensity": intensity})
+    code, out, err = run_cli("convert", str(tmp_path / "scan.ply"), str(tmp_path / "scan.las"))
+    assert code == 0 and "wrote 300 points" in out
+    assert err.count("\n") == 1 and err.startswith("warning: scan.las: LAS intensity is an integer in 0..65535")
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / "scan.las").attributes["intensity_float32"], intensity)
 
 
 LAS_FLAGS = {3: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld"),

@@ -40,3 +40,12 @@ class BaselineError(MapsqueezeError):
 
 class DecodeLimitError(MapsqueezeError):
     """A container asks for more decoded points than the decoder's limit allows (a guard against crafted files)."""
+
+
+class MapsqueezeWarning(UserWarning):
+    """Base class of the warnings mapsqueeze gives: the command line prints each as one `warning: ...` line."""
+
+
+class FieldRenamedWarning(MapsqueezeWarning):
+    """An attribute was written under another name than its own, where the output format's field of that name
+    cannot hold its values (a float intensity in LAS: written as the extra dimension intensity_float32)."""

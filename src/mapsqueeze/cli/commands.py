@@ -9,12 +9,13 @@ the help lists every command and click suggests the name meant."""
 import importlib
 import signal
 import sys
+import warnings
 
 import typer
 
 from mapsqueeze.cli import _fail
-from mapsqueeze.cli.app import app
-from mapsqueeze.errors import MapsqueezeError
+from mapsqueeze.cli.app import app, print_line
+from mapsqueeze.errors import MapsqueezeError, MapsqueezeWarning
 
 COMMAND_MODULES = {
     "compress": "codec_cmds", "decompress": "codec_cmds", "info": "codec_cmds", "convert": "io_cmds",
@@ -34,6 +35,17 @@ def load_commands(args: list[str] | None = None) -> typer.Typer:
     return app
 
 
+_python_show_warning = warnings.showwarning
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A MapsqueezeWarning as one `warning: ...` line on stderr; any other warning as Python shows it."""
+    if issubclass(category, MapsqueezeWarning):
+        print_line(f"warning: {' '.join(str(message).split())}", stderr=True)
+    else:
+        _python_show_warning(message, category, filename, lineno, file, line)
+
+
 def run() -> None:
     """Run the command of sys.argv (none: `--help`, which click 8.2 would make a usage error holding the help):
     library errors and usage errors become one `error: ...` line and exit code 2 (SIGINT and SIGTERM propagate to
@@ -41,7 +53,9 @@ def run() -> None:
     args = sys.argv[1:] or ["--help"]
     load_commands(args)
     try:
-        result = app(args=args, standalone_mode=False)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            result = app(args=args, standalone_mode=False)
     except MapsqueezeError as exc:
         _fail(str(exc))
     except typer.Exit as exc:

@@ -219,18 +219,32 @@ def _checked_chunks(chunks: Callable[[], Iterable], path: Path) -> ChunkSource:
     return source
 
 
+def _value_range(values: np.ndarray) -> tuple[float, float, bool]:
+    """(smallest, largest, whether every value is a whole number) of a non-empty attribute column."""
+    whole = values.dtype.kind in "iub" or bool(np.array_equal(values, np.round(values)))
+    return float(values.min()), float(values.max()), whole
+
+
 def _cloud_stats(chunks: ChunkSource, path: Path) -> CloudStats:
     n, lowest, highest, error, dtypes, metadata = 0, np.full(3, np.inf), np.full(3, -np.inf), 0.0, {}, {}
+    ranges: dict[str, tuple[float, float, bool]] = {}
     for index, chunk in enumerate(chunks()):
         if index == 0:
             dtypes, metadata = {name: values.dtype for name, values in chunk.attributes.items()}, chunk.metadata
         n += len(chunk)
+        if not len(chunk):
+            continue
         chunk_low, chunk_high = bounding_box(chunk.points)
         lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
         error = max(error, float32_error_m(chunk.points))
+        for name, values in chunk.attributes.items():
+            low, high, whole = _value_range(values)
+            if name in ranges:
+                low, high, whole = min(low, ranges[name][0]), max(high, ranges[name][1]), whole and ranges[name][2]
+            ranges[name] = (low, high, whole)
     if n == 0:
         raise InvalidPointCloudError(f"points for {path}: the point cloud is empty")
-    return CloudStats(n, lowest, highest, error, dtypes, metadata)
+    return CloudStats(n, lowest, highest, error, dtypes, metadata, ranges)
 
 
 def _write(path: Path, chunks: Callable[[], Iterable], format: str | None) -> tuple[CloudStats, tuple[str, ...]]:

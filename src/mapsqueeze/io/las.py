@@ -6,23 +6,28 @@ the format has them `gps_time`, `red`, `green`, `blue`, `nir`; its bit fields `s
 `edge_of_flight_line`, `synthetic`, `key_point`, `withheld`, and in formats 6-10 `overlap` and `scanner_channel`
 (uint8 each); then every extra-bytes dimension (scaled when it declares scales). Metadata
 (`PointCloud.metadata["las"]`): version, point format, scales, offsets, system identifier, the VLRs and EVLRs other
-than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions' descriptions, types, scales and offsets;
-`metadata["crs"]` is a readable summary (`EPSG:32632` from the GeoKeyDirectory, or the WKT). A `metadata["crs"]`
-without CRS records (given through the API) is written as a WKT record where it is a WKT, and not at all otherwise.
+than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double params, WKT: the CRS) as base64, the WKT flag,
+and the extra dimensions' descriptions, types, scales and offsets; `metadata["crs"]` is a readable summary
+(`EPSG:32632` from the GeoKeyDirectory, or the WKT). A `metadata["crs"]` without CRS records (given through the API)
+is written as a WKT record where it is a WKT, and not at all otherwise.
 
-Writing: the point format is the metadata's when it holds every standard field given, else the first of 0, 1, 2,
-3, 6, 7, 8 that does; standard fields must fit their LAS type exactly. Scale and offset are the metadata's when
-the cloud fits them, else LAS_SCALE_M and the minimum rounded down to whole metres (error at most 0.05 mm; extent
-below 2^31 * 0.1 mm, about 214 km, per axis). Other attributes become extra-bytes dimensions of their own dtype.
+Writing: the point format is the metadata's when it has every standard field given and they hold the values (whole
+numbers within each field's range), else the first of 0, 1, 2, 3, 6, 7, 8 that does (classification 40: format 6). A
+standard field that no such format holds (a float intensity of 0.37) is written exactly as the extra dimension
+`name_dtype` (intensity_float32), with a FieldRenamedWarning. EVLRs are written after the points, and a file with
+EVLRs is LAS 1.4. Scale and offset are the metadata's when the cloud fits them, else LAS_SCALE_M and the minimum
+rounded down to whole metres (error at most 0.05 mm; extent below 2^31 * 0.1 mm, about 214 km, per axis). Other
+attributes become extra-bytes dimensions of their own dtype.
 
 Colour: LAS colour (`red`, `green`, `blue`, `nir`) is 16-bit (0..65535, ASPRS), and an attribute's dtype is its bit
-depth, so uint8 channels (PLY uchar, PCD packed rgb) are written scaled by EIGHT_BIT_SCALE (255 -> 65535) and channels
-of any other dtype as they are. Read colour stays 16-bit whatever the writer after it: PLY and PCD store it as uint16
-(PLY ushort, PCD fields `red` `green` `blue` of TYPE U SIZE 2), so LAS -> PLY -> LAS keeps it exactly.
+depth, so uint8 channels (PLY uchar, PCD packed rgb) are written scaled by EIGHT_BIT_SCALE (255 -> 65535) and
+channels of any other dtype as they are. Read colour stays 16-bit whatever the writer after it: PLY and PCD store it
+as uint16 (PLY ushort, PCD fields `red` `green` `blue` of TYPE U SIZE 2), so LAS -> PLY -> LAS keeps it exactly.
 """
 
 import base64
 import re
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,7 +36,7 @@ import lazrs
 from laspy.vlrs.vlrlist import VLRList
 import numpy as np
 
-from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
+from mapsqueeze.errors import FieldRenamedWarning, InvalidPointCloudError, PointCloudFormatError
 from mapsqueeze.io.atomic import atomic_output
 from mapsqueeze.io.pointcloud import ChunkSource, CloudStats, PointCloud, split_columns, validate_points
 
@@ -165,12 +170,43 @@ def _check_point_data_size(path: Path, header: laspy.LasHeader) -> None:
             f"{needed:,} bytes in all; the file holds {size:,} (truncated?)")
 
 
-def _point_format(stats: CloudStats, preferred: int | None) -> int:
+def _misfits(stats: CloudStats, point_format: laspy.PointFormat) -> list[str]:
+    """The standard integer fields of `point_format` whose attribute values are not whole numbers within the field's
+    range (classification 40 in formats 0-5, a float intensity of 0.37)."""
+    misfits = []
+    for name in point_format.dimension_names:
+        if name not in stats.dtypes or name not in stats.ranges:
+            continue
+        limits = _integer_limits(point_format, name)
+        low, high, whole = stats.ranges[name]
+        if name in COLOUR_FIELDS and stats.dtypes[name] == np.uint8:
+            low, high = low * EIGHT_BIT_SCALE, high * EIGHT_BIT_SCALE
+        if limits is not None and not (whole and limits[0] <= low and high <= limits[1]):
+            misfits.append(name)
+    return misfits
+
+
+def _point_format(stats: CloudStats, preferred: int | None) -> laspy.PointFormat:
+    """The preferred point format, else the first of _WRITE_FORMATS, that has every standard field given, and of
+    those the first whose fields hold the values given; if none does, the first that has the fields."""
     wanted = {name for name in stats.dtypes if name in STANDARD_FIELDS}
-    for candidate in ([preferred] if preferred is not None else []) + list(_WRITE_FORMATS):
-        if wanted <= set(laspy.PointFormat(candidate).dimension_names):
-            return candidate
-    raise InvalidPointCloudError(f"no LAS point format holds all of {', '.join(sorted(wanted))}")
+    candidates = [laspy.PointFormat(candidate)
+                  for candidate in ([preferred] if preferred is not None else []) + list(_WRITE_FORMATS)
+                  if wanted <= set(laspy.PointFormat(candidate).dimension_names)]
+    if not candidates:
+        raise InvalidPointCloudError(f"no LAS point format holds all of {', '.join(sorted(wanted))}")
+    return next((candidate for candidate in candidates if not _misfits(stats, candidate)), candidates[0])
+
+
+def _extra_name(name: str, dtype: np.dtype, taken) -> str:
+    """The extra dimension that holds standard field `name`'s values where the field cannot: `name_dtype`, e.g.
+    intensity_float32 (at most 32 characters, LAS's limit)."""
+    suffix = f"_{np.dtype(dtype).name}"
+    extra = name[:32 - len(suffix)] + suffix
+    if extra.lower() in {other.lower() for other in taken}:
+        raise InvalidPointCloudError(f"attribute {name!r} does not fit LAS's {name} field and {extra!r}, the extra "
+                                     "dimension that would hold it, is taken; rename one of them")
+    return extra
 
 
 def _fits(scales: np.ndarray, offsets: np.ndarray, stats: CloudStats) -> bool:
@@ -180,11 +216,11 @@ def _fits(scales: np.ndarray, offsets: np.ndarray, stats: CloudStats) -> bool:
     return bool((np.abs(low) < _INTEGER_LIMIT).all() and (np.abs(high) < _INTEGER_LIMIT).all())
 
 
-def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList]:
-    """The header to write and the EVLRs to write after the points (the streaming writer leaves header.evlrs out).
-    A file with EVLRs is LAS 1.4, the first version with EVLRs."""
+def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList, dict[str, str]]:
+    """The header to write, the EVLRs to write after the points (the streaming writer leaves header.evlrs out) and
+    the name each attribute is written under. A file with EVLRs is LAS 1.4, the first version with EVLRs."""
     las = stats.metadata.get("las", {})
-    point_format = _point_format(stats, las.get("point_format"))
+    point_format = _point_format(stats, las.get("point_format")).id
     version = las.get("version", "1.4") if point_format < 6 and not las.get("evlrs") else "1.4"
     header = laspy.LasHeader(version=version if version in ("1.2", "1.3", "1.4") else "1.4",
                              point_format=point_format)
@@ -210,8 +246,14 @@ def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList]:
         header.global_encoding.wkt = True
     standard = set(header.point_format.dimension_names)
     described = las.get("extra_bytes", {})
-    params = []
+    params, stored = [], {}
+    misfits = set(_misfits(stats, header.point_format))
     for name, dtype in stats.dtypes.items():
+        if name in misfits:
+            stored[name] = _extra_name(name, dtype, set(standard) | set(stats.dtypes))
+            params.append(laspy.ExtraBytesParams(stored[name], dtype, f"{name} values"))
+            continue
+        stored[name] = name
         if name in standard:
             continue
         if name.lower() in {dim.lower() for dim in standard}:
@@ -223,11 +265,11 @@ def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList]:
         else:
             params.append(laspy.ExtraBytesParams(name, dtype, info.get("description", "")))
     header.add_extra_dims(params)
-    return header, evlrs
+    return header, evlrs, stored
 
 
 def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool) -> tuple[str, ...]:
-    header, evlrs = _header(stats)
+    header, evlrs, stored = _header(stats)
     standard = set(header.point_format.dimension_names)
     try:
         with atomic_output(path) as temp, open(temp, "wb") as stream, \
@@ -237,9 +279,10 @@ def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool
                 record = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=header)
                 record.x, record.y, record.z = chunk.points[:, 0], chunk.points[:, 1], chunk.points[:, 2]
                 for name, values in chunk.attributes.items():
+                    name = stored[name]
                     if name in COLOUR_FIELDS and values.dtype == np.uint8:
                         values = values * np.uint16(EIGHT_BIT_SCALE)
-                    limits = _integer_limits(record, name) if name in standard else None
+                    limits = _integer_limits(record.point_format, name) if name in standard else None
                     if limits is not None:
                         low, high = limits
                         if values.min() < low or values.max() > high or not np.array_equal(values, np.round(values)):
@@ -250,15 +293,23 @@ def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool
                     else:
                         record[name] = values
                 writer.write_points(record)
-            writer.write_evlrs(evlrs)
+            if evlrs:
+                writer.write_evlrs(evlrs)
     except (laspy.errors.LaspyException, OverflowError) as exc:
         raise InvalidPointCloudError(f"cannot write LAS ({exc})") from None
-    return tuple(stats.dtypes)
+    for name, extra in stored.items():
+        if extra != name:
+            low, high = _integer_limits(header.point_format, name)
+            warnings.warn(FieldRenamedWarning(
+                f"{path.name}: LAS {name} is an integer in {low}..{high} (point format {header.point_format.id}) "
+                f"and attribute {name!r} ({stats.dtypes[name].name}) is not; written as the extra dimension "
+                f"{extra!r}"), stacklevel=2)
+    return tuple(stored.values())
 
 
-def _integer_limits(record, name: str) -> tuple[int, int] | None:
+def _integer_limits(point_format: laspy.PointFormat, name: str) -> tuple[int, int] | None:
     """Smallest and largest value of a standard integer field (bit fields by their width); None if scaled/float."""
-    dimension = record.point_format.dimension_by_name(name)
+    dimension = point_format.dimension_by_name(name)
     if dimension.is_scaled or (dimension.dtype is not None and np.dtype(dimension.dtype).kind == "f"):
         return None
     return int(dimension.min), int(dimension.max)

@@ -62,7 +62,8 @@ ChunkSource = Callable[[], Iterable[PointCloud]]
 
 @dataclass(frozen=True)
 class CloudStats:
-    """What a writer needs before the first chunk: count, extent, float32 rounding error, attribute dtypes."""
+    """What a writer needs before the first chunk: count, extent, float32 rounding error, attribute dtypes, and each
+    attribute's values as (smallest, largest, whether all are whole numbers)."""
 
     n_points: int
     lowest: np.ndarray
@@ -70,6 +71,7 @@ class CloudStats:
     float32_error: float
     dtypes: dict[str, np.dtype]
     metadata: dict
+    ranges: dict[str, tuple[float, float, bool]]
 
     def require_float32(self, label: str) -> None:
         """Refuse a float32-only format when float32 would move points by more than FLOAT32_MAX_ERROR_M."""
