@@ -5,12 +5,14 @@ import json
 import os
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import laspy
 import numpy as np
 import pytest
 
@@ -499,7 +501,8 @@ def truncated(path: Path, fraction: float) -> Path:
 @pytest.mark.parametrize("case", ["directory as input", "directory as decompress output", "directory as convert output",
                                   "convert into a missing folder", "truncated LAS", "truncated LAZ",
                                   "truncated ascii PCD", "truncated binary_compressed PCD",
-                                  "corrupt binary_compressed PCD"])
+                                  "corrupt binary_compressed PCD", "LAS declaring fewer points than it holds",
+                                  "LAS point outside the header's bounds", "LAZ with a NaN GPS time"])
 def test_bad_paths_and_truncated_files_name_the_problem(run_cli, tiny_model_dir, map_file, tmp_path, case,
                                                         binary_compressed_pcd):
     folder = tmp_path / "folder"
@@ -523,6 +526,29 @@ def test_bad_paths_and_truncated_files_name_the_problem(run_cli, tiny_model_dir,
         write_points(tmp_path / "in.laz", points)
         args = ["convert", truncated(tmp_path / "in.laz", 0.5), tmp_path / "out.ply"]
         expected = "corrupt or truncated LAZ point data"
+    elif case == "LAS declaring fewer points than it holds":  # the rest would be left out unsaid
+        write_points(tmp_path / "in.las", points)
+        data = bytearray((tmp_path / "in.las").read_bytes())
+        struct.pack_into("<I", data, 107, 100)  # legacy point count
+        struct.pack_into("<Q", data, 247, 100)  # LAS 1.4 point count
+        (tmp_path / "in.las").write_bytes(bytes(data))
+        args, expected = ["convert", tmp_path / "in.las", tmp_path / "out.ply"], \
+            "LAS header declares 100 points, the file holds 2,000 point records"
+    elif case == "LAS point outside the header's bounds":  # corrupt coordinates, or a header that lies
+        write_points(tmp_path / "in.las", points)
+        data = bytearray((tmp_path / "in.las").read_bytes())
+        struct.pack_into("<d", data, 179, points[:, 0].min() + 1.0)  # max x
+        (tmp_path / "in.las").write_bytes(bytes(data))
+        args, expected = ["compress", tmp_path / "in.las", "-o", tmp_path / "out.msq"], "lies outside the header's bounds"
+    elif case == "LAZ with a NaN GPS time":  # what lazrs makes of damaged bytes, without an error
+        header = laspy.LasHeader(version="1.2", point_format=1)
+        header.offsets, header.scales = UTM, np.full(3, 0.001)
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = points.T
+        las.gps_time = np.where(np.arange(len(points)) == 1234, np.nan, 1e5)
+        las.write(str(tmp_path / "in.laz"))
+        args, expected = ["convert", tmp_path / "in.laz", tmp_path / "out.ply"], \
+            "point 1,234 has a GPS time of nan: corrupt point data"
     elif case == "truncated ascii PCD":
         write_points(tmp_path / "in.pcd", points, format="pcd-ascii")
         args = ["convert", truncated(tmp_path / "in.pcd", 0.5), tmp_path / "out.ply"]

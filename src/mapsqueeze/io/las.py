@@ -145,6 +145,8 @@ def las_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
                 if len(part):
                     points = validate_points(np.column_stack([np.asarray(part.x), np.asarray(part.y),
                                                               np.asarray(part.z)]), str(path), seen, declared)
+                    _check_within_bounds(path, reader.header, points, seen)
+                    _check_gps_time(path, part, seen)
                     yield (PointCloud(points, _attributes(part, reader.header.point_format), metadata)
                            if attributes else PointCloud(points))
                 seen += len(part)
@@ -158,7 +160,9 @@ def las_chunks(path: Path, chunk_points: int, attributes: bool = True) -> Iterat
 
 
 def _check_point_data_size(path: Path, header: laspy.LasHeader) -> None:
-    """PointCloudFormatError when an uncompressed LAS file ends before the point records its header declares."""
+    """PointCloudFormatError when an uncompressed LAS file ends before the point records its header declares, or
+    holds more whole records between the header and what follows the points (EVLRs, waveform data, the end of the
+    file) than it declares: a wrong count, by which points would be left out unsaid."""
     if header.are_points_compressed:
         return
     record, start = header.point_format.size, header.offset_to_point_data
@@ -168,6 +172,41 @@ def _check_point_data_size(path: Path, header: laspy.LasHeader) -> None:
         raise PointCloudFormatError(
             f"{path}: LAS header declares {header.point_count:,} points of {record} bytes from byte {start:,}, "
             f"{needed:,} bytes in all; the file holds {size:,} (truncated?)")
+    follows = [offset for offset in (header.start_of_first_evlr, header.start_of_waveform_data_packet_record)
+               if offset and offset >= needed]
+    held = (min(follows + [size]) - start) // record
+    if held > header.point_count:
+        raise PointCloudFormatError(
+            f"{path}: LAS header declares {header.point_count:,} points, the file holds {held:,} point records "
+            "(a wrong point count in the header)")
+
+
+def _check_gps_time(path: Path, part, first: int) -> None:
+    """PointCloudFormatError at a GPS time of NaN or infinity: corrupt point data (LAZ decodes damaged bytes into
+    values without an error, and no LAS writer stores such a time)."""
+    if "gps_time" not in part.point_format.dimension_names:
+        return
+    bad = ~np.isfinite(np.asarray(part.gps_time))
+    if bad.any():
+        raise PointCloudFormatError(f"{path}: point {first + int(np.argmax(bad)):,} has a GPS time of "
+                                    f"{np.asarray(part.gps_time)[np.argmax(bad)]}: corrupt point data")
+
+
+def _check_within_bounds(path: Path, header: laspy.LasHeader, points: np.ndarray, first: int) -> None:
+    """PointCloudFormatError when a point lies outside the header's bounding box by more than a coordinate step:
+    corrupt point data (LAZ decodes damaged bytes into points without an error) or a header with wrong bounds. A
+    header whose bounds are all zero (left unset by its writer) is not checked."""
+    if not (np.any(header.mins) or np.any(header.maxs)):
+        return
+    slack = np.asarray(header.scales) + 1e-9 * np.abs(np.asarray(header.maxs))
+    outside = ((points < np.asarray(header.mins) - slack) | (points > np.asarray(header.maxs) + slack)).any(axis=1)
+    if outside.any():
+        index = int(np.argmax(outside))
+        x, y, z = points[index]
+        raise PointCloudFormatError(
+            f"{path}: point {first + index:,} ({x:.3f}, {y:.3f}, {z:.3f}) lies outside the header's bounds "
+            f"({', '.join(f'{v:.3f}' for v in header.mins)} to {', '.join(f'{v:.3f}' for v in header.maxs)}): "
+            "corrupt point data, or a header with wrong bounds")
 
 
 def _misfits(stats: CloudStats, point_format: laspy.PointFormat) -> list[str]:
