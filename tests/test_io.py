@@ -158,6 +158,19 @@ def test_las_header_uses_documented_scale_and_offset(tmp_path):
     assert (tmp_path / "utm.laz").stat().st_size < 0.8 * write_and_size(tmp_path / "utm.las", points)
 
 
+def test_las_axis_wider_than_214_km_takes_a_coarser_scale(tmp_path):
+    """An axis spanning more than 2^31 steps of 0.1 mm (a 300 km corridor map) is written at 1 mm, the others at 0.1
+    mm; before, the write was refused."""
+    rng = np.random.default_rng(7)
+    points = np.column_stack([rng.uniform(0, 300e3, 500), rng.uniform(0, 1e3, 500), rng.uniform(0, 50, 500)])
+    points += UTM_OFFSET_M
+    write_points(tmp_path / "corridor.las", points)
+    header = laspy.read(tmp_path / "corridor.las").header
+    np.testing.assert_allclose(header.scales, [1e-3, LAS_SCALE_M, LAS_SCALE_M])
+    error = np.abs(read_points(tmp_path / "corridor.las") - points).max(axis=0)
+    assert (error <= np.array([5e-4, 5e-5, 5e-5]) + 1e-9).all(), error
+
+
 def write_and_size(path: Path, points: np.ndarray) -> int:
     write_points(path, points)
     return path.stat().st_size

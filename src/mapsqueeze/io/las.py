@@ -15,8 +15,9 @@ Writing: the point format is the metadata's when it has every standard field giv
 numbers within each field's range), else the first of 0, 1, 2, 3, 6, 7, 8 that does (classification 40: format 6). A
 standard field that no such format holds (a float intensity of 0.37) is written exactly as the extra dimension
 `name_dtype` (intensity_float32), with a FieldRenamedWarning. EVLRs are written after the points, and a file with
-EVLRs is LAS 1.4. Scale and offset are the metadata's when the cloud fits them, else LAS_SCALE_M and the minimum
-rounded down to whole metres (error at most 0.05 mm; extent below 2^31 * 0.1 mm, about 214 km, per axis). Other
+EVLRs is LAS 1.4. Scale and offset are the metadata's when the cloud fits them, else the minimum rounded down to
+whole metres and per axis LAS_SCALE_M (error at most 0.05 mm) where its extent is below 2^31 * 0.1 mm (about 214
+km), else 1 mm or 1 cm (21,000 km: any cloud within the 10,000 km of the origin that validation allows). Other
 attributes become extra-bytes dimensions of their own dtype.
 
 Colour: LAS colour (`red`, `green`, `blue`, `nir`) is 16-bit (0..65535, ASPRS), and an attribute's dtype is its bit
@@ -41,7 +42,10 @@ from mapsqueeze.io.atomic import atomic_output
 from mapsqueeze.io.pointcloud import ChunkSource, CloudStats, PointCloud, split_columns, validate_points
 
 LAS_SCALE_M = 1e-4
-"""LAS/LAZ coordinate resolution in metres (quantisation error at most half of it)."""
+"""LAS/LAZ coordinate resolution in metres (quantisation error at most half of it) of an axis that spans less than
+2^31 of it (about 214 km)."""
+_COARSER_SCALES = (LAS_SCALE_M, 1e-3, 1e-2)
+"""The resolutions (metres) tried in turn for an axis, the first under which its extent fits LAS's 32-bit integers."""
 
 STANDARD_FIELDS = ("intensity", "return_number", "number_of_returns", "classification", "scan_angle_rank",
                    "scan_angle", "user_data", "point_source_id", "gps_time", "red", "green", "blue", "nir",
@@ -265,12 +269,14 @@ def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList, dict[str, str]
                              point_format=point_format)
     scales, offsets = np.asarray(las.get("scales", [0.0] * 3)), np.asarray(las.get("offsets", [0.0] * 3))
     if not _fits(scales, offsets, stats):
-        scales, offsets = np.full(3, LAS_SCALE_M), np.floor(stats.lowest)
-        extent = (stats.highest - offsets) / LAS_SCALE_M
-        if extent.max() > _INTEGER_LIMIT:
+        offsets = np.floor(stats.lowest)
+        extent = stats.highest - offsets
+        scales = np.array([next((scale for scale in _COARSER_SCALES if span / scale < _INTEGER_LIMIT), np.nan)
+                           for span in extent])
+        if np.isnan(scales).any():
             raise InvalidPointCloudError(
-                f"the cloud spans {extent.max() * LAS_SCALE_M / 1e3:.0f} km, more than LAS can hold at "
-                f"{LAS_SCALE_M * 1e3:g} mm resolution (about {_INTEGER_LIMIT * LAS_SCALE_M / 1e3:.0f} km)")
+                f"the cloud spans {extent.max() / 1e3:.0f} km, more than LAS can hold at {_COARSER_SCALES[-1] * 1e3:g} "
+                f"mm resolution (about {_INTEGER_LIMIT * _COARSER_SCALES[-1] / 1e3:.0f} km)")
     header.offsets, header.scales = offsets, scales
     if las.get("system_identifier"):
         header.system_identifier = las["system_identifier"]
