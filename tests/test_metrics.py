@@ -166,9 +166,13 @@ def cloud_files(tmp_path):
 
 
 def test_cli_eval_prints_table(run_cli, cloud_files):
+    """Piped (as run_cli captures it): plain lines, a header and one row per metric, no box characters."""
     code, out, _ = run_cli("eval", *map(str, cloud_files), "--bytes", "225")
     assert code == 0
-    assert "D_e" in out and "0.050000" in out and "2.0000" in out  # bpp = 8 * 225 / 900
+    lines = out.splitlines()
+    assert lines[0].split() == ["metric", "value", "unit"] and len(lines) == 8
+    assert lines[1].split() == ["D_e", "0.050000", "m"] and "2.0000" in lines[5]  # bpp = 8 * 225 / 900
+    assert all(line == line.rstrip() and not set(line) & set("┃│┏━┡└─") for line in lines)
 
 
 def test_cli_eval_json(run_cli, cloud_files, tmp_path):

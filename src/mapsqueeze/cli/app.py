@@ -98,6 +98,22 @@ def print_line(text: str, stderr: bool = False) -> None:
         print(text, file=stream)
 
 
+def print_table(table) -> None:
+    """A rich Table on stdout: boxed on a terminal; piped or redirected, plain lines (the title, then the header and
+    each row, columns aligned by spaces, no box characters, no trailing spaces)."""
+    console = make_console()
+    if sys.stdout.isatty():
+        console.print(table)
+        return
+    if table.title:
+        print_line(str(table.title))
+    table.title, table.box, table.pad_edge = None, None, False
+    with console.capture() as captured:
+        console.print(table)
+    for line in captured.get().splitlines():
+        print_line(line.rstrip())
+
+
 def print_rows(rows: list[tuple[str, str]]) -> None:
     """(name, value) rows on stdout, the values aligned: a rich table on a terminal; piped or redirected, one plain
     line per row (`print_line`) without the trailing spaces a table pads its last column with."""

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from mapsqueeze.cli.app import app, device_option, make_console
+from mapsqueeze.cli.app import app, device_option, make_console, print_table
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS
 
 console = make_console()
@@ -44,5 +44,5 @@ def demo_cmd(
     }
     for label, cell in rows.items():
         table.add_row(label, *(cell(r) for r in results))
-    console.print(table)
+    print_table(table)
     console.print(f"files in {out}/ (.msq containers, decoded PLYs)")

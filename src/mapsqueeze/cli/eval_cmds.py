@@ -8,7 +8,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mapsqueeze.cli.app import app, make_console, nan_points_line
+from mapsqueeze.cli.app import app, make_console, nan_points_line, print_table
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.io import read_point_cloud
 
@@ -73,4 +73,4 @@ def eval_command(
     if as_json:
         print(json.dumps(dataclasses.asdict(metrics)))
     else:
-        make_console().print(_table(metrics))
+        print_table(_table(metrics))

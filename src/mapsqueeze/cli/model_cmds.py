@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from mapsqueeze.cli.app import app, make_console
+from mapsqueeze.cli.app import app, make_console, print_table
 
 console = make_console()
 
@@ -46,7 +46,7 @@ def fit_density(
     table.add_column("fitted")
     for r, rate in zip(fit.grids_m, fit.mean_rates):
         table.add_row(f"{r:g}", f"{rate:.5f}", f"{fit.a * r ** -fit.b:.5f}")
-    console.print(table)
+    print_table(table)
     console.print(f"a = {fit.a:.5f}  b = {fit.b:.4f}  rmse = {fit.rmse:.2e}")
 
 
@@ -132,4 +132,4 @@ def models_cmd():
         if c.extra.get("encoder_only"):
             run += " (encoder only)"
         table.add_row(name, f"{c.subsampling_dist:g}", "x".join(map(str, c.upsampling_factors)), validation, run)
-    console.print(table)
+    print_table(table)
