@@ -162,6 +162,38 @@ def test_las_field_that_cannot_hold_the_values_is_written_as_an_extra_dimension(
     np.testing.assert_array_equal(read_point_cloud(tmp_path / "scan.las").attributes["intensity_float32"], intensity)
 
 
+def test_las_array_extra_dimensions_are_written_back_as_arrays(tmp_path):
+    """A k-element extra-bytes dimension (a normal as 3 x float32; a scaled 2 x int16) is read as the columns name_0
+    .. name_{k-1} and written back as one array dimension with its description, type, scales and offsets, in the
+    order of the dimensions; before, it came back as k scalar dimensions."""
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales, header.offsets = np.full(3, 0.001), UTM
+    header.add_extra_dims([laspy.ExtraBytesParams("normal", "3f4", "unit normal"),
+                           laspy.ExtraBytesParams("amp", np.uint8, "amplitude"),
+                           laspy.ExtraBytesParams("slope", "2i2", "slope", scales=np.array([0.01, 0.01]),
+                                                  offsets=np.array([0.0, 1.0]))])
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(8)
+    xyz = UTM + rng.uniform(0, 30, (400, 3))
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.normal = rng.standard_normal((400, 3)).astype(np.float32)
+    las.amp = rng.integers(0, 255, 400)
+    las.slope = np.round(rng.uniform(-3, 3, (400, 2)), 2)
+    las.write(str(tmp_path / "a.laz"))
+    cloud = read_point_cloud(tmp_path / "a.laz")
+    assert {"normal_0", "normal_2", "slope_1", "amp"} <= set(cloud.attributes)
+    write_points(tmp_path / "b.laz", cloud.points, attributes=cloud.attributes, metadata=cloud.metadata)
+    again = laspy.read(tmp_path / "b.laz")
+    assert [(d.name, d.num_elements, d.description.strip("\0")) for d in again.point_format.extra_dimensions] == \
+        [("normal", 3, "unit normal"), ("amp", 1, "amplitude"), ("slope", 2, "slope")]
+    for name in ("normal", "amp", "slope"):
+        np.testing.assert_array_equal(np.asarray(again[name]), np.asarray(las[name]), err_msg=name)
+    slope = again.point_format.dimension_by_name("slope")
+    np.testing.assert_allclose(slope.scales, [0.01, 0.01])
+    np.testing.assert_allclose(slope.offsets, [0, 1])
+    np.testing.assert_array_equal(np.asarray(again.points.array["slope"]), np.asarray(las.points.array["slope"]))
+
+
 LAS_FLAGS = {3: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld"),
              6: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld", "overlap",
                  "scanner_channel")}

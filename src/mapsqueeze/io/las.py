@@ -4,12 +4,13 @@ Attributes read: the point format's standard fields `intensity`, `return_number`
 `classification`, `scan_angle_rank` (formats 0-5) or `scan_angle` (6-10), `user_data`, `point_source_id`, and where
 the format has them `gps_time`, `red`, `green`, `blue`, `nir`; its bit fields `scan_direction_flag`,
 `edge_of_flight_line`, `synthetic`, `key_point`, `withheld`, and in formats 6-10 `overlap` and `scanner_channel`
-(uint8 each); then every extra-bytes dimension (scaled when it declares scales). Metadata
-(`PointCloud.metadata["las"]`): version, point format, scales, offsets, system identifier, the VLRs and EVLRs other
-than extra-bytes and LAZ records (GeoKeyDirectory, GeoAscii/Double params, WKT: the CRS) as base64, the WKT flag,
-and the extra dimensions' descriptions, types, scales and offsets; `metadata["crs"]` is a readable summary
-(`EPSG:32632` from the GeoKeyDirectory, or the WKT). A `metadata["crs"]` without CRS records (given through the API)
-is written as a WKT record where it is a WKT, and not at all otherwise.
+(uint8 each); then every extra-bytes dimension (scaled when it declares scales; a k-element array as the columns
+`name_0` .. `name_{k-1}`, written back as the array). Metadata (`PointCloud.metadata["las"]`): version, point
+format, scales, offsets, system identifier, the VLRs and EVLRs other than extra-bytes and LAZ records
+(GeoKeyDirectory, GeoAscii/Double params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions'
+descriptions, types, scales and offsets; `metadata["crs"]` is a readable summary (`EPSG:32632` from the
+GeoKeyDirectory, or the WKT). A `metadata["crs"]` without CRS records (given through the API) is written as a WKT
+record where it is a WKT, and not at all otherwise.
 
 Writing: the point format is the metadata's when it has every standard field given and they hold the values (whole
 numbers within each field's range), else the first of 0, 1, 2, 3, 6, 7, 8 that does (classification 40: format 6). A
@@ -112,6 +113,8 @@ def _metadata(header: laspy.LasHeader, evlrs: list) -> dict:
     extra = {}
     for info in header.point_format.extra_dimensions:
         entry = {"description": info.description.strip("\0 "), "type": np.dtype(info.dtype).base.str}
+        if info.num_elements > 1:
+            entry["count"] = int(info.num_elements)
         if info.scales is not None:
             entry.update(scales=[float(v) for v in np.atleast_1d(info.scales)],
                          offsets=[float(v) for v in np.atleast_1d(info.offsets)])
@@ -259,9 +262,11 @@ def _fits(scales: np.ndarray, offsets: np.ndarray, stats: CloudStats) -> bool:
     return bool((np.abs(low) < _INTEGER_LIMIT).all() and (np.abs(high) < _INTEGER_LIMIT).all())
 
 
-def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList, dict[str, str]]:
+def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList, dict[str, str | tuple[str, int]]]:
     """The header to write, the EVLRs to write after the points (the streaming writer leaves header.evlrs out) and
-    the name each attribute is written under. A file with EVLRs is LAS 1.4, the first version with EVLRs."""
+    where each attribute is written: a dimension's name, or (name, index) of an array dimension's element (the
+    columns name_0 .. name_{k-1} of an array read from LAS). A file with EVLRs is LAS 1.4, the first version with
+    EVLRs."""
     las = stats.metadata.get("las", {})
     point_format = _point_format(stats, las.get("point_format")).id
     version = las.get("version", "1.4") if point_format < 6 and not las.get("evlrs") else "1.4"
@@ -293,7 +298,22 @@ def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList, dict[str, str]
     described = las.get("extra_bytes", {})
     params, stored = [], {}
     misfits = set(_misfits(stats, header.point_format))
+    for array, info in described.items():  # name_0 .. name_{k-1} read from a k-element array dimension
+        columns = [f"{array}_{index}" for index in range(info.get("count", 1))]
+        if len(columns) > 1 and array not in stats.dtypes and all(column in stats.dtypes for column in columns) \
+                and len({stats.dtypes[column] for column in columns}) == 1:
+            stored.update({column: (array, index) for index, column in enumerate(columns)})
     for name, dtype in stats.dtypes.items():
+        if name in stored:
+            array, index = stored[name]
+            info, count = described[array], described[array]["count"]
+            if index == 0 and "scales" in info and dtype.kind == "f":
+                params.append(laspy.ExtraBytesParams(array, np.dtype((np.dtype(info["type"]), count)),
+                                                     info["description"], offsets=info["offsets"],
+                                                     scales=info["scales"]))
+            elif index == 0:
+                params.append(laspy.ExtraBytesParams(array, np.dtype((dtype, count)), info["description"]))
+            continue
         if name in misfits:
             stored[name] = _extra_name(name, dtype, set(standard) | set(stats.dtypes))
             params.append(laspy.ExtraBytesParams(stored[name], dtype, f"{name} values"))
@@ -323,8 +343,12 @@ def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool
             for chunk in chunks():
                 record = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=header)
                 record.x, record.y, record.z = chunk.points[:, 0], chunk.points[:, 1], chunk.points[:, 2]
+                elements: dict[str, dict[int, np.ndarray]] = {}
                 for name, values in chunk.attributes.items():
                     name = stored[name]
+                    if isinstance(name, tuple):
+                        elements.setdefault(name[0], {})[name[1]] = values
+                        continue
                     if name in COLOUR_FIELDS and values.dtype == np.uint8:
                         values = values * np.uint16(EIGHT_BIT_SCALE)
                     limits = _integer_limits(record.point_format, name) if name in standard else None
@@ -337,19 +361,21 @@ def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool
                         record[name] = values.astype(np.int64)
                     else:
                         record[name] = values
+                for array, columns in elements.items():
+                    record[array] = np.column_stack([columns[index] for index in range(len(columns))])
                 writer.write_points(record)
             if evlrs:
                 writer.write_evlrs(evlrs)
     except (laspy.errors.LaspyException, OverflowError) as exc:
         raise InvalidPointCloudError(f"cannot write LAS ({exc})") from None
     for name, extra in stored.items():
-        if extra != name:
+        if extra != name and not isinstance(extra, tuple):
             low, high = _integer_limits(header.point_format, name)
             warnings.warn(FieldRenamedWarning(
                 f"{path.name}: LAS {name} is an integer in {low}..{high} (point format {header.point_format.id}) "
                 f"and attribute {name!r} ({stats.dtypes[name].name}) is not; written as the extra dimension "
                 f"{extra!r}"), stacklevel=2)
-    return tuple(stored.values())
+    return tuple(dict.fromkeys(extra[0] if isinstance(extra, tuple) else extra for extra in stored.values()))
 
 
 def _integer_limits(point_format: laspy.PointFormat, name: str) -> tuple[int, int] | None:
