@@ -194,6 +194,34 @@ def test_las_array_extra_dimensions_are_written_back_as_arrays(tmp_path):
     np.testing.assert_array_equal(np.asarray(again.points.array["slope"]), np.asarray(las.points.array["slope"]))
 
 
+def test_las_extra_dimension_no_data_values_are_kept(tmp_path):
+    """The no-data value an extra dimension declares (plain, scaled, array) is read into the metadata and written
+    back; laspy's dimension list leaves it out, so it was lost before."""
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales, header.offsets = np.full(3, 0.001), UTM
+    header.add_extra_dims([laspy.ExtraBytesParams("deviation", "u2", "dev", no_data=[65535]),
+                           laspy.ExtraBytesParams("temp", "i2", "temp", scales=[0.1], offsets=[0.0], no_data=[-32768]),
+                           laspy.ExtraBytesParams("normal", "3f4", "normal", no_data=[0.0, 0.0, -1.0]),
+                           laspy.ExtraBytesParams("amp", "u1", "amplitude")])
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(9)
+    xyz = UTM + rng.uniform(0, 30, (100, 3))
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.deviation = np.where(rng.random(100) < 0.3, 65535, 5)
+    las.temp = np.round(rng.uniform(-5, 5, 100), 1)
+    las.normal = rng.standard_normal((100, 3)).astype(np.float32)
+    las.write(str(tmp_path / "a.las"))
+    cloud = read_point_cloud(tmp_path / "a.las")
+    assert cloud.metadata["las"]["extra_bytes"]["deviation"]["no_data"] == [65535]
+    assert "no_data" not in cloud.metadata["las"]["extra_bytes"]["amp"]
+    write_points(tmp_path / "b.laz", cloud.points, attributes=cloud.attributes, metadata=cloud.metadata)
+    (vlr,) = [vlr for vlr in laspy.read(tmp_path / "b.laz").header.vlrs
+              if isinstance(vlr, laspy.vlrs.known.ExtraBytesVlr)]
+    written = {struct.format_name(): struct.no_data for struct in vlr.extra_bytes_structs}
+    assert written["deviation"].tolist() == [65535] and written["temp"].tolist() == [-32768]
+    assert written["normal"].tolist() == [0.0, 0.0, -1.0] and written["amp"] is None
+
+
 LAS_FLAGS = {3: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld"),
              6: ("scan_direction_flag", "edge_of_flight_line", "synthetic", "key_point", "withheld", "overlap",
                  "scanner_channel")}

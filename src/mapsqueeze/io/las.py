@@ -8,9 +8,9 @@ the format has them `gps_time`, `red`, `green`, `blue`, `nir`; its bit fields `s
 `name_0` .. `name_{k-1}`, written back as the array). Metadata (`PointCloud.metadata["las"]`): version, point
 format, scales, offsets, system identifier, the VLRs and EVLRs other than extra-bytes and LAZ records
 (GeoKeyDirectory, GeoAscii/Double params, WKT: the CRS) as base64, the WKT flag, and the extra dimensions'
-descriptions, types, scales and offsets; `metadata["crs"]` is a readable summary (`EPSG:32632` from the
-GeoKeyDirectory, or the WKT). A `metadata["crs"]` without CRS records (given through the API) is written as a WKT
-record where it is a WKT, and not at all otherwise.
+descriptions, types, scales, offsets and no-data values; `metadata["crs"]` is a readable summary (`EPSG:32632` from
+the GeoKeyDirectory, or the WKT). A `metadata["crs"]` without CRS records (given through the API) is written as a
+WKT record where it is a WKT, and not at all otherwise.
 
 Writing: the point format is the metadata's when it has every standard field given and they hold the values (whole
 numbers within each field's range), else the first of 0, 1, 2, 3, 6, 7, 8 that does (classification 40: format 6). A
@@ -35,6 +35,7 @@ from pathlib import Path
 
 import laspy
 import lazrs
+from laspy.vlrs.known import ExtraBytesVlr
 from laspy.vlrs.vlrlist import VLRList
 import numpy as np
 
@@ -111,10 +112,14 @@ def _metadata(header: laspy.LasHeader, evlrs: list) -> dict:
     vlrs = [vlr for vlr in header.vlrs if (vlr.user_id, vlr.record_id) not in _MANAGED_RECORDS]
     evlrs = [vlr for vlr in evlrs if (vlr.user_id, vlr.record_id) not in _MANAGED_RECORDS]
     extra = {}
+    no_data = {struct.format_name(): struct.no_data for vlr in header.vlrs if isinstance(vlr, ExtraBytesVlr)
+               for struct in vlr.extra_bytes_structs if struct.no_data is not None}  # laspy's dimensions drop it
     for info in header.point_format.extra_dimensions:
         entry = {"description": info.description.strip("\0 "), "type": np.dtype(info.dtype).base.str}
         if info.num_elements > 1:
             entry["count"] = int(info.num_elements)
+        if info.name in no_data:
+            entry["no_data"] = no_data[info.name].tolist()
         if info.scales is not None:
             entry.update(scales=[float(v) for v in np.atleast_1d(info.scales)],
                          offsets=[float(v) for v in np.atleast_1d(info.offsets)])
@@ -310,9 +315,10 @@ def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList, dict[str, str 
             if index == 0 and "scales" in info and dtype.kind == "f":
                 params.append(laspy.ExtraBytesParams(array, np.dtype((np.dtype(info["type"]), count)),
                                                      info["description"], offsets=info["offsets"],
-                                                     scales=info["scales"]))
+                                                     scales=info["scales"], no_data=_no_data(info, dtype)))
             elif index == 0:
-                params.append(laspy.ExtraBytesParams(array, np.dtype((dtype, count)), info["description"]))
+                params.append(laspy.ExtraBytesParams(array, np.dtype((dtype, count)), info["description"],
+                                                     no_data=_no_data(info, dtype)))
             continue
         if name in misfits:
             stored[name] = _extra_name(name, dtype, set(standard) | set(stats.dtypes))
@@ -325,12 +331,22 @@ def _header(stats: CloudStats) -> tuple[laspy.LasHeader, VLRList, dict[str, str 
             raise InvalidPointCloudError(f"attribute {name!r} clashes with a standard LAS field; rename it")
         info = described.get(name, {})
         if "scales" in info and dtype.kind == "f":
-            params.append(laspy.ExtraBytesParams(name, info["type"], info["description"],
-                                                 offsets=info["offsets"], scales=info["scales"]))
+            params.append(laspy.ExtraBytesParams(name, info["type"], info["description"], offsets=info["offsets"],
+                                                 scales=info["scales"], no_data=_no_data(info, dtype)))
         else:
-            params.append(laspy.ExtraBytesParams(name, dtype, info.get("description", "")))
+            params.append(laspy.ExtraBytesParams(name, dtype, info.get("description", ""),
+                                                 no_data=_no_data(info, dtype)))
     header.add_extra_dims(params)
     return header, evlrs, stored
+
+
+def _no_data(info: dict, dtype: np.dtype) -> list | None:
+    """The no-data values of an extra dimension as read (`metadata["las"]["extra_bytes"][name]["no_data"]`), where
+    the attribute still has the type they were read for (a dimension stored as the raw integers: the same kind)."""
+    values = info.get("no_data")
+    if values is None or np.dtype(info["type"]).kind != np.dtype(dtype).kind and "scales" not in info:
+        return None
+    return values
 
 
 def write_las(path: Path, chunks: ChunkSource, stats: CloudStats, compress: bool) -> tuple[str, ...]:
