@@ -218,7 +218,8 @@ def _check_within_bounds(path: Path, header: laspy.LasHeader, points: np.ndarray
         raise PointCloudFormatError(
             f"{path}: point {first + index:,} ({x:.3f}, {y:.3f}, {z:.3f}) lies outside the header's bounds "
             f"({', '.join(f'{v:.3f}' for v in header.mins)} to {', '.join(f'{v:.3f}' for v in header.maxs)}): "
-            "corrupt point data, or a header with wrong bounds")
+            "corrupt point data, or a header with wrong bounds (`lasinfo -repair_bb` or `pdal translate` rewrites "
+            "them)")
 
 
 def _misfits(stats: CloudStats, point_format: laspy.PointFormat) -> list[str]:
