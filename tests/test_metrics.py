@@ -54,6 +54,28 @@ def test_normals_of_noisy_plane_are_close_to_analytic_normal():
     assert np.median(np.abs(normals @ rotation[:, 2])) > 0.999
 
 
+def test_dense_cloud_normals_are_taken_in_blocks_with_the_same_result(monkeypatch):
+    """A cloud with more neighbour pairs than PAIRS_AT_ONCE (an unfiltered scan: 200k points on 10 x 10 m made 2.5
+    GB of pairs and a MemoryError) is taken in blocks of points: the same neighbourhoods, the same normals, and
+    query_pairs, which holds every pair at once, is not called."""
+    import mapsqueeze.geometry.normals as normals_module
+
+    rng = np.random.default_rng(4)
+    rotation = tilted_frame()
+    local = np.column_stack([rng.uniform(0, 3, 3000), rng.uniform(0, 3, 3000), rng.normal(0, 0.01, 3000)])
+    cloud = np.vstack([local @ rotation.T, np.repeat(local[:1] @ rotation.T, 200, axis=0)])  # and a pile of copies
+    at_once = normals_pca(cloud)
+    monkeypatch.setattr(normals_module, "PAIRS_AT_ONCE", 5000)
+    from scipy.spatial import cKDTree
+
+    class NoPairsAtOnce(cKDTree):
+        def query_pairs(self, *args, **kwargs):
+            raise AssertionError("query_pairs holds every pair at once")
+
+    in_blocks = normals_pca(cloud, tree=NoPairsAtOnce(cloud))
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", at_once, in_blocks)), 1.0, atol=1e-9)
+
+
 def test_isolated_point_falls_back_to_its_nearest_points():
     plane, rotation = tilted_grid_plane()
     far = plane[0] + 0.8 * rotation[:, 0] - 0.7 * rotation[:, 1]  # in the plane, > 0.5 m from every grid point

@@ -1,16 +1,19 @@
 """Surface normals by PCA of radius neighbourhoods, as the paper precomputes them for D_perp (Sec. IV-A).
 
-The normal of a point is the eigenvector of the smallest eigenvalue of the covariance of all points within
-`radius` metres of it (the point included). Its sign is arbitrary: D_perp uses |n . d|.
+The normal of a point is the eigenvector of the smallest eigenvalue of the covariance of all points within `radius`
+metres of it (the point included). Its sign is arbitrary: D_perp uses |n . d|.
 
-All neighbour pairs are found at once with `cKDTree.query_pairs` (each unordered pair once, no cap, so the
-neighbourhoods are exactly the paper's); covariances are accumulated from the pair offsets with `np.bincount`
-and solved with one batched `np.linalg.eigh`. Memory is about 16 bytes per neighbour pair: ~1 kB per point for
-a map voxel-filtered at 10 cm as in the paper (~100 neighbours within 0.5 m), far more for an unfiltered cloud.
+The neighbourhoods are exactly the paper's (no cap). Where the cloud has at most PAIRS_AT_ONCE neighbour pairs
+(counted first with `cKDTree.count_neighbors`, which stores none), all are found at once with `cKDTree.query_pairs`
+(each unordered pair once, 16 bytes a pair: ~1 kB per point for a map voxel-filtered at 10 cm as in the paper, ~100
+neighbours within 0.5 m); a denser cloud (an unfiltered scan, repeated points) is taken in blocks of points whose
+neighbour lists together hold a quarter of PAIRS_AT_ONCE entries, so memory stays bounded whatever the density.
+Covariances are accumulated from the offsets with `np.bincount` and solved with one batched `np.linalg.eigh`.
 """
 
 from __future__ import annotations
 
+from itertools import chain
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,6 +34,8 @@ FALLBACK_NEIGHBOURHOOD = 5
 """A point with fewer than MIN_NEIGHBOURHOOD points within the radius uses its this-many nearest points."""
 
 _PAIRS_PER_CHUNK = 1 << 20  # bounds the temporaries of the covariance accumulation (~50 MB)
+PAIRS_AT_ONCE = 1 << 24
+"""Most neighbour pairs held in memory at once (16 bytes each: 256 MB)."""
 
 
 def normals_pca(points: np.ndarray, radius: float = NORMAL_RADIUS_M, tree: cKDTree | None = None) -> np.ndarray:
@@ -67,23 +72,47 @@ def _neighbourhood_moments(
     coordinates. A pair (i, j) adds d to i and -d to j, and the same outer product d d^T to both.
     """
     n = len(points)
-    pairs = tree.query_pairs(radius, output_type="ndarray")
-    counts = 1 + np.bincount(pairs.ravel(), minlength=n)
     coordinates = np.ascontiguousarray(points.T)  # (3, N): contiguous rows make np.take and bincount fast
     sums = np.zeros((3, n))
     products = np.zeros((3, 3, n))
-    for start in range(0, len(pairs), _PAIRS_PER_CHUNK):
-        chunk = pairs[start : start + _PAIRS_PER_CHUNK]
-        first, second = np.ascontiguousarray(chunk[:, 0]), np.ascontiguousarray(chunk[:, 1])
-        offsets = np.take(coordinates, second, axis=1) - np.take(coordinates, first, axis=1)
-        for a in range(3):
-            sums[a] += np.bincount(first, offsets[a], n) - np.bincount(second, offsets[a], n)
-            for b in range(a, 3):
-                outer = offsets[a] * offsets[b]
-                products[a, b] += np.bincount(first, outer, n) + np.bincount(second, outer, n)
+    pair_count = (int(tree.count_neighbors(tree, radius)) - n) // 2
+    if pair_count <= PAIRS_AT_ONCE:
+        pairs = tree.query_pairs(radius, output_type="ndarray")
+        counts = 1 + np.bincount(pairs.ravel(), minlength=n)
+        for start in range(0, len(pairs), _PAIRS_PER_CHUNK):
+            chunk = pairs[start : start + _PAIRS_PER_CHUNK]
+            _accumulate(coordinates, np.ascontiguousarray(chunk[:, 0]), np.ascontiguousarray(chunk[:, 1]), sums,
+                        products, both=True)
+    else:
+        counts = np.zeros(n, dtype=np.int64)
+        # points whose lists hold ~PAIRS_AT_ONCE / 4 entries: a list entry takes ~36 bytes, an array pair 16
+        block = max(1, PAIRS_AT_ONCE // 4 * n // (2 * pair_count + n))
+        for start in range(0, n, block):
+            lists = tree.query_ball_point(points[start : start + block], radius, workers=-1, return_sorted=False)
+            lengths = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
+            counts[start : start + len(lists)] = lengths
+            first = np.repeat(np.arange(start, start + len(lists)), lengths)
+            second = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
+            del lists
+            for part in range(0, len(first), _PAIRS_PER_CHUNK):
+                chosen = slice(part, part + _PAIRS_PER_CHUNK)
+                _accumulate(coordinates, first[chosen], second[chosen], sums, products, both=False)
     for a, b in ((1, 0), (2, 0), (2, 1)):
         products[a, b] = products[b, a]
     return counts, sums.T, np.moveaxis(products, -1, 0)
+
+
+def _accumulate(coordinates: np.ndarray, first: np.ndarray, second: np.ndarray, sums: np.ndarray,
+                products: np.ndarray, both: bool) -> None:
+    """Add the offsets d = second - first to the sums of point `first` (and, with `both`, -d to those of `second`,
+    each unordered pair given once) and d d^T to the products of the same points."""
+    n = sums.shape[1]
+    offsets = np.take(coordinates, second, axis=1) - np.take(coordinates, first, axis=1)
+    for a in range(3):
+        sums[a] += np.bincount(first, offsets[a], n) - (np.bincount(second, offsets[a], n) if both else 0)
+        for b in range(a, 3):
+            outer = offsets[a] * offsets[b]
+            products[a, b] += np.bincount(first, outer, n) + (np.bincount(second, outer, n) if both else 0)
 
 
 def _nearest_moments(
