@@ -23,6 +23,7 @@ from mapsqueeze.errors import ContainerError
 from mapsqueeze.geometry.morton import coarse_to_fine_subset
 from mapsqueeze.io import write_points
 from mapsqueeze.metrics import evaluate
+from mapsqueeze.model import load_model
 from mapsqueeze.view import CloudInput, ViewInput, build_scene, load_cloud, render_page, write_view
 from mapsqueeze.view.browser import find_chromium, screenshot
 
@@ -318,3 +319,31 @@ def test_headless_chromium_draws_both_clouds_and_the_error_colours(tmp_path, int
     grey = pixels.max(axis=1) - pixels.min(axis=1) <= 3  # RAMPS.intensity of viewer.js: dark grey to white
     assert grey.sum() > 0.9 * len(pixels) > 2000
     assert min((pixels[grey, 0] < 64).sum(), (pixels[grey, 0] > 128).sum()) > 1000  # low and high intensities
+
+
+def test_a_file_beyond_the_default_tile_limit_warns_at_compress_and_views_with_the_flag(tmp_path, map_points,
+                                                                                          model_dir, run_cli,
+                                                                                          monkeypatch):
+    """A network tile whose native count is above the per-tile guard (a volume filled with points at e3: 13M
+    points, over 2^23) is named by a warning at compress, with the --max-tile-points that decodes it, and `view`
+    takes that flag as `decompress` does (it had none, so such a file could not be viewed). The guard is lowered
+    here to the tiny model's native count minus one."""
+    import mapsqueeze.codec.compress as compress_module
+
+    data = mapsqueeze.compress(map_points, model=model_dir, fallback=False)
+    natives = [len(tile.embedding) for tile in mapsqueeze.tiles(data)]
+    factor = int(np.prod(load_model(model_dir).config.upsampling_factors))
+    limit = max(natives) * factor - 1
+    monkeypatch.setattr(compress_module, "DEFAULT_MAX_TILE_POINTS", limit)
+    np.save(tmp_path / "map.npy", map_points)
+    code, out, err = run_cli("compress", str(tmp_path / "map.npy"), "-o", str(tmp_path / "map.msq"), "--model",
+                             str(model_dir), "--no-fallback", "--post-filter", "off")
+    assert code == 0 and err.count("\n") == 1, err
+    assert err.startswith("warning: 1 tile(s) decode to more than the") and \
+        f"--max-tile-points {limit + 1}" in err
+    code, out, err = run_cli("view", str(tmp_path / "map.msq"), "-o", str(tmp_path / "v.html"), "--model",
+                             str(model_dir), "--max-tile-points", str(limit))
+    assert code == 2 and "more than the limit of" in err and not (tmp_path / "v.html").exists()
+    code, out, err = run_cli("view", str(tmp_path / "map.msq"), "-o", str(tmp_path / "v.html"), "--model",
+                             str(model_dir), "--max-tile-points", str(limit + 1))
+    assert code == 0 and (tmp_path / "v.html").exists(), err

@@ -194,12 +194,13 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
 
 def decompress_cloud(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[float] | None = None,
                      density: float | None = None, n_points: int | None = None,
-                     progress: ProgressCallback | None = None, workers: int | None = None,
+                     progress: ProgressCallback | None = None,
+                     max_tile_points: int = DEFAULT_MAX_TILE_POINTS, workers: int | None = None,
                      dask_scheduler: str | None = None, device: str = "cpu") -> PointCloud:
     """As `decompress`, with every attribute coded in the file (dtypes restored) and the file's metadata."""
     device = _device(device, model, dask_scheduler)
-    tiles = list(iter_decoded_clouds(data, model, bbox, density, n_points, progress, workers=workers,
-                                     dask_scheduler=dask_scheduler, device=device))
+    tiles = list(iter_decoded_clouds(data, model, bbox, density, n_points, progress, max_tile_points,
+                                     workers=workers, dask_scheduler=dask_scheduler, device=device))
     if not tiles:
         return PointCloud(np.zeros((0, 3), dtype=np.float64))
     return PointCloud(np.concatenate([tile.points for tile in tiles]),

@@ -49,3 +49,7 @@ class MapsqueezeWarning(UserWarning):
 class FieldRenamedWarning(MapsqueezeWarning):
     """An attribute was written under another name than its own, where the output format's field of that name
     cannot hold its values (a float intensity in LAS: written as the extra dimension intensity_float32)."""
+
+
+class TileLimitWarning(MapsqueezeWarning):
+    """A file was written whose tiles decode to more points than decompress allows by default (--max-tile-points)."""

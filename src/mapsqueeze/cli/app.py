@@ -48,6 +48,14 @@ def device_option(runs: str) -> typer.models.OptionInfo:
                              "float32 rounding, not the same bytes)")
 
 
+def max_tile_points_option() -> typer.models.OptionInfo:
+    """--max-tile-points: the decoder's guard against crafted files (`codec.decompress.target_counts`)."""
+    from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE
+
+    return typer.Option(DEFAULT_MAX_TILE_POINTS, "--max-tile-points", metavar="N", min=1, max=MAX_POINTS_PER_TILE,
+                        help="refuse to decode more points than this in one tile (a guard against crafted files)")
+
+
 def parse_numbers(text: str, count: int, option: str, meaning: str) -> list[float]:
     """'40,40,15' -> [40.0, 40.0, 15.0]; exactly `count` comma-separated numbers or a MapsqueezeError."""
     try:

@@ -9,12 +9,12 @@ import typer
 
 from mapsqueeze import api
 from mapsqueeze.cli.app import (
-    FORMAT_HELP, app, counted, device_option, make_console, nan_points_line, parse_numbers, print_line, print_rows,
+    FORMAT_HELP, app, counted, device_option, make_console, max_tile_points_option, nan_points_line, parse_numbers,
+    print_line, print_rows,
 )
 from mapsqueeze.cli.io_cmds import warn_dropped
 from mapsqueeze.codec.attributes import DEFAULT_RELATIVE_STEP, DEFAULT_VOXEL_M
 from mapsqueeze.codec.compress import MAX_REFINE_STEPS, AttributeOptions
-from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE
 from mapsqueeze.codec.modes import POST_FILTER_MODES
 from mapsqueeze.errors import OutputError
 
@@ -149,10 +149,7 @@ def decompress_command(
                                                            "named in the file)"),
     out_format: str | None = typer.Option(None, "--format", metavar="FORMAT",
                                           help=f"format of the output: {FORMAT_HELP}"),
-    max_tile_points: int = typer.Option(DEFAULT_MAX_TILE_POINTS, "--max-tile-points", metavar="N", min=1,
-                                        max=MAX_POINTS_PER_TILE,
-                                        help="refuse to decode more points than this in one tile (a guard "
-                                             "against crafted files)"),
+    max_tile_points: int = max_tile_points_option(),
     no_attributes: bool = typer.Option(False, "--no-attributes",
                                        help="write the geometry only, without decoding the attribute fields"),
     workers: int | None = _workers_option(),

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import typer
 
-from mapsqueeze.cli.app import app, device_option, nan_points_line, print_line
+from mapsqueeze.cli.app import app, device_option, max_tile_points_option, nan_points_line, print_line
 from mapsqueeze.errors import MapsqueezeError
 from mapsqueeze.view import DEFAULT_MAX_POINTS
 
@@ -22,6 +22,7 @@ def view_command(
                                    help="points drawn per cloud: an evenly spread subset (8-13 bytes of page each: "
                                         "13 with errors and intensity)"),
     model: str | None = typer.Option(None, "--model", help="model to decode with (default: the one in the file)"),
+    max_tile_points: int = max_tile_points_option(),
     open_page: bool = typer.Option(False, "--open", help="open the page in the default web browser"),
     device: str = device_option("the decoder"),
 ) -> None:
@@ -34,7 +35,7 @@ def view_command(
     if not msq.is_file():
         raise MapsqueezeError(f"{msq}: no such file")
     view = ViewInput(msq.name, msq, original=None if original is None else load_cloud(original), model=model,
-                     device=device)
+                     device=device, max_tile_points=max_tile_points)
     scene = write_view(view, output, max_points)
     drawn = ", ".join(f"{c['name']} {c['drawn']:,} of {c['total']:,}" for c in scene["clouds"])
     if view.original is not None and view.original.nan_points_dropped:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapsqueeze import api
+from mapsqueeze.codec.container import DEFAULT_MAX_TILE_POINTS
 from mapsqueeze.geometry.morton import coarse_to_fine_subset
 from mapsqueeze.io import PointCloud
 from mapsqueeze.metrics import Metrics, evaluate, nearest_distances
@@ -59,6 +60,7 @@ class ViewInput:
     metrics: Metrics | None = None  # default: evaluate(original, decoded) when the original is given
     model: object = None  # decoding model (default: the one named in the file)
     device: str = "cpu"  # where a model given by name, or the file's, decodes (`api.decompress_cloud`)
+    max_tile_points: int = DEFAULT_MAX_TILE_POINTS  # the decoder's guard (`api.decompress_cloud`)
 
 
 def _b64(array: np.ndarray, dtype: str) -> str:
@@ -86,8 +88,8 @@ def build_scene(view: ViewInput, max_points: int = DEFAULT_MAX_POINTS) -> dict:
         raise ValueError(f"max_points must be at least 1, got {max_points}")
     summary = api.info(view.msq)
     tile_list = api.tiles(view.msq)
-    decoded = view.decoded or CloudInput.from_point_cloud(api.decompress_cloud(view.msq, model=view.model,
-                                                                                         device=view.device))
+    decoded = view.decoded or CloudInput.from_point_cloud(api.decompress_cloud(
+        view.msq, model=view.model, device=view.device, max_tile_points=view.max_tile_points))
     metrics = view.metrics
     if metrics is None and view.original is not None:
         metrics = evaluate(view.original.points, decoded.points, n_bytes=summary.file_bytes)
