@@ -359,6 +359,21 @@ def test_cli_convert_warns_once_about_dropped_fields(tmp_path):
     np.testing.assert_array_equal(read_point_cloud(tmp_path / "a.bin").attributes["reflectance"], 1.0)
 
 
+def test_cli_warns_that_npy_keeps_attributes_as_unnamed_columns(run_cli, tmp_path):
+    """.npy stores attributes as float64 columns 3, 4, ... without names or dtypes: one warning line maps each name
+    to its column (before, intensity and label came back as column3, column4 unsaid); none for a file whose
+    attributes are already those columns."""
+    n = 50
+    write_points(tmp_path / "a.ply", np.random.default_rng(1).random((n, 3)),
+                 attributes={"intensity": np.ones(n, np.float32), "label": np.full(n, 7, np.uint16)})
+    code, out, err = run_cli("convert", str(tmp_path / "a.ply"), str(tmp_path / "a.npy"))
+    assert code == 0 and err == ("warning: a.npy holds attributes as unnamed float64 columns: intensity as column3, "
+                                 "label as column4\n")
+    assert list(read_point_cloud(tmp_path / "a.npy").attributes) == ["column3", "column4"]
+    code, out, err = run_cli("convert", str(tmp_path / "a.npy"), str(tmp_path / "b.npy"))
+    assert code == 0 and err == ""
+
+
 def test_cli_warns_when_the_output_cannot_hold_the_crs(run_cli, tiny_model_dir, tmp_path):
     """convert and decompress to a format without a place for the CRS (all but LAS/LAZ) say it is not written."""
     import mapsqueeze

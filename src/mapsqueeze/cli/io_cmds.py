@@ -6,7 +6,8 @@ import typer
 
 from mapsqueeze.cli.app import FORMAT_HELP, app, counted, nan_points_line, print_line
 from mapsqueeze.io import (
-    check_output_path, dropped_fields, format_name, holds_crs, holds_metadata, read_point_cloud, write_points,
+    check_output_path, dropped_fields, format_name, holds_crs, holds_metadata, read_point_cloud, unnamed_fields,
+    write_points,
 )
 
 
@@ -31,12 +32,18 @@ def convert(
 
 
 def warn_dropped(names, output_path: Path, out_format: str | None = None, metadata: dict | None = None) -> None:
-    """One warning line on stderr naming the attributes the output format cannot hold, if any, and one naming the
-    CRS (`metadata["crs"]`: "EPSG:n" or a WKT from a LAS file, any JSON value from the API) where the format has no
+    """One warning line on stderr naming the attributes the output format cannot hold, if any, one naming those it
+    holds without their names and dtypes (.npy's columns, unless already named so), and one naming the CRS
+    (`metadata["crs"]`: "EPSG:n" or a WKT from a LAS file, any JSON value from the API) where the format has no
     place for it."""
     dropped = dropped_fields(names, output_path, out_format)
     if dropped:
         print_line(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; not written",
+                   stderr=True)
+    unnamed = unnamed_fields(names, output_path, out_format)
+    if unnamed and unnamed != [f"column{3 + column}" for column in range(len(unnamed))]:
+        print_line(f"warning: {output_path.name} holds attributes as unnamed float64 columns: "
+                   f"{', '.join(f'{name} as column{3 + column}' for column, name in enumerate(unnamed))}",
                    stderr=True)
     crs = (metadata or {}).get("crs")
     if crs and not holds_crs(metadata, output_path, out_format):

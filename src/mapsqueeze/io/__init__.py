@@ -17,6 +17,7 @@ from mapsqueeze.io.formats import (
     iter_points,
     read_point_cloud,
     read_points,
+    unnamed_fields,
     write_point_chunks,
     write_points,
 )
@@ -51,6 +52,7 @@ __all__ = [
     "point_cloud_files",
     "read_point_cloud",
     "read_points",
+    "unnamed_fields",
     "validate_attributes",
     "validate_points",
     "write_point_chunks",

@@ -59,6 +59,7 @@ class Format:
     fields: tuple[str, ...] | None  # attribute names it holds (ANY_FIELDS: any)
     streams: bool  # True: memory-mapped or chunked reading and chunk-by-chunk writing; False: whole in memory
     metadata: bool = False  # True: writes the file metadata (LAS header records: the CRS)
+    names: bool = True  # False: attributes are stored as unnamed float64 columns (.npy), read back as column3, ...
 
     def holds(self, name: str) -> bool:
         return self.fields is ANY_FIELDS or name in self.fields
@@ -86,7 +87,7 @@ FORMATS: dict[str, Format] = {fmt.name: fmt for fmt in (
     Format("pcd-ascii", (), pcd_chunks, partial(write_pcd, encoding="ascii"), ANY_FIELDS, False),
     Format("las", (".las",), _las_chunks, partial(_write_las, compress=False), ANY_FIELDS, True, True),
     Format("laz", (".laz",), _las_chunks, partial(_write_las, compress=True), ANY_FIELDS, True, True),
-    Format("npy", (".npy",), tables.npy_chunks, tables.write_npy, ANY_FIELDS, True),
+    Format("npy", (".npy",), tables.npy_chunks, tables.write_npy, ANY_FIELDS, True, names=False),
 )}
 
 SUPPORTED_FORMATS: tuple[str, ...] = tuple(FORMATS)
@@ -126,6 +127,13 @@ def dropped_fields(names: Iterable[str], path: str | os.PathLike, format: str | 
     """The attribute names a file of this format cannot hold (before writing it)."""
     fmt = FORMATS[format_name(path, format)]
     return [name for name in names if not fmt.holds(name)]
+
+
+def unnamed_fields(names: Iterable[str], path: str | os.PathLike, format: str | None = None) -> list[str]:
+    """The attribute names a file of this format stores without their names and dtypes (as .npy's float64 columns
+    3, 4, ..., in this order), before writing it."""
+    fmt = FORMATS[format_name(path, format)]
+    return [] if fmt.names else [name for name in names if fmt.holds(name)]
 
 
 def holds_metadata(path: str | os.PathLike, format: str | None = None) -> bool:
