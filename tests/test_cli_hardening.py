@@ -912,6 +912,16 @@ def test_a_msq_where_a_point_cloud_is_expected_is_named_as_such(run_cli, map_fil
     assert "set the format" not in err
 
 
+def test_eval_of_flat_clouds_a_millimetre_apart_gives_no_overlap_warning(run_cli, tmp_path):
+    """A flat ground truth (z = 50 exactly) and a decoding a millimetre above it have disjoint boxes but overlap:
+    no warning (before: "the clouds do not overlap")."""
+    plane = np.column_stack([np.random.default_rng(2).uniform(0, 20, (500, 2)), np.full(500, 50.0)]) + UTM
+    write_points(tmp_path / "gt.ply", plane)
+    write_points(tmp_path / "rec.ply", plane + [0.0, 0.0, 0.001])
+    code, out, err = run_cli("eval", str(tmp_path / "gt.ply"), str(tmp_path / "rec.ply"), "--json")
+    assert code == 0 and err == "" and json.loads(out)["d_e"] == pytest.approx(0.001, abs=1e-4)
+
+
 def test_eval_of_a_ground_truth_without_extent_gives_no_overlap_warning(run_cli, tmp_path):
     """Every ground-truth point in one place: D_e of a tenth of a millimetre is no sign of another frame."""
     write_points(tmp_path / "gt.ply", np.tile([[1.0, 2.0, 3.0]], (50, 1)))

@@ -188,6 +188,9 @@ EVALUATION_STAGES = ("normals", "matching", "IoU")
 
 MAX_D_E_SHARE_OF_EXTENT = 0.1
 """`overlap_warning` flags a D_e above this share of the ground truth's bounding-box diagonal."""
+OVERLAP_SLACK_M = 1.0
+"""`overlap_warning` calls bounding boxes disjoint when a gap between them is wider than this (metres): a flat
+ground truth and its decoding, a few millimetres off its plane, share no volume but plainly overlap."""
 
 
 def evaluate(
@@ -220,10 +223,10 @@ def evaluate(
 
 
 def overlap_warning(gt: np.ndarray, rec: np.ndarray, d_e: float) -> str | None:
-    """Why the two clouds look like different places (bounding boxes disjoint, or D_e above
+    """Why the two clouds look like different places (bounding boxes more than OVERLAP_SLACK_M apart, or D_e above
     MAX_D_E_SHARE_OF_EXTENT of the ground truth's extent, when it has one: another frame or offset?), or None."""
     (gt_low, gt_high), (rec_low, rec_high) = bounding_box(gt), bounding_box(rec)
-    if (gt_high < rec_low).any() or (rec_high < gt_low).any():
+    if (gt_high + OVERLAP_SLACK_M < rec_low).any() or (rec_high + OVERLAP_SLACK_M < gt_low).any():
         return (f"the clouds do not overlap: ground truth spans {np.round(gt_low, 2).tolist()} .. "
                 f"{np.round(gt_high, 2).tolist()}, the reconstruction {np.round(rec_low, 2).tolist()} .. "
                 f"{np.round(rec_high, 2).tolist()} (different coordinate frames?)")
