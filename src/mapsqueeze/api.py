@@ -179,8 +179,9 @@ def decompress(data: bytes | str | os.PathLike, *, model=None, bbox: Sequence[fl
     By default every tile decodes to the count its file states: the native count of its coding (the network's
     whole output inside the tile, thinned where it piles up at a face shared with another tile, `codec.seams`;
     docs/model.md, "Decoded density"), or for version 1 files its input count. bbox=(x0, y0, z0, x1, y1, z1) decodes only the
-    tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total)
-    choose another density. model defaults to the shipped model named in the file; its weights must match the
+    tiles that intersect it and crops to it; density (points per m^3 of each tile's box) or n_points (in total,
+    split over the tiles decoded by their input counts; with a bbox, counted before the crop) choose another
+    density. model defaults to the shipped model named in the file; its weights must match the
     file's. A tile asked for more than max_tile_points points raises DecodeLimitError (a crafted file may claim
     millions of points in a few bytes). workers: threads decoding tiles in parallel (None: one per core; 1: this
     thread); dask_scheduler, device: as in `compress` (the decoder runs there; a file decodes on any device, the
@@ -305,7 +306,7 @@ class TileInfo:
     index: tuple[int, int, int]  # grid cell: lower corner at origin + index * tile_size
     coding: str  # how its points are stored: "network" (an embedding decoded by the model), "raw" or "octree"
     model_id: str | None  # the model that decodes it (None: no network needed)
-    n_points: int  # points of the input map in the tile (the default decoded count)
+    n_points: int  # points of the input map in the tile (the default decoded count of version 1 files only)
     payload_bytes: int
     cell: np.ndarray  # (2, 3) float64 world box of the grid cell (metres)
     bounds: np.ndarray  # (2, 3) float64 world box of the tile's input points (metres)

@@ -144,7 +144,9 @@ def decompress_command(
                                          help="points per m^3 of the bounding box of each tile's points, each "
                                               "side at least 1 m (default: the count the file states, the native "
                                               "count of each tile's coding; version 1 files: the input count)"),
-    points: int | None = typer.Option(None, "--points", metavar="N", help="total number of points to decode"),
+    points: int | None = typer.Option(None, "--points", metavar="N",
+                                      help="total number of points to decode, split over the tiles by their input "
+                                           "counts (with --bbox: over the tiles the box touches, before the crop)"),
     model: str | None = typer.Option(None, "--model", help="model to decode with (default: the shipped model "
                                                            "named in the file)"),
     out_format: str | None = typer.Option(None, "--format", metavar="FORMAT",
