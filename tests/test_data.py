@@ -18,12 +18,12 @@ from mapsqueeze.data import (
     transform,
     write_dataset,
 )
-from mapsqueeze.data.mapping import preprocess_scan, submap_bounds
+from mapsqueeze.data.mapping import Submap, preprocess_scan, submap_bounds
 from mapsqueeze.data.sequences import read_poses
 from mapsqueeze.errors import DataError, InvalidPointCloudError
 from mapsqueeze.geometry.tiling import TILE_SIZE_M, fit_grid, tile_map
 from mapsqueeze.geometry.voxel import VoxelAccumulator, pack_indices, voxel_filter, voxel_indices
-from mapsqueeze.io import read_points, write_points
+from mapsqueeze.io import read_point_cloud, read_points, write_points
 
 KITTI_SUBMAP_POINTS = 101_924
 UTM_OFFSET_M = np.array([500000.123, 4000000.456, 50.0])
@@ -296,6 +296,28 @@ def test_dataset_round_trip_keeps_precision_and_merges_sources(tmp_path):
 # --- tiling ---------------------------------------------------------------------------------------------------
 
 
+def test_an_interrupted_dataset_write_removes_the_files_it_wrote(tmp_path):
+    """Ctrl-C or SIGTERM (any exception) while submaps are written removes the files written so far that no manifest
+    names, and the folder it made; a dataset already there keeps its files and manifest."""
+    def submaps(stop_after):
+        for number in range(5):
+            if number == stop_after:
+                raise KeyboardInterrupt
+            yield Submap(np.full((3, 3), float(number)) + UTM_OFFSET_M, UTM_OFFSET_M, np.stack([UTM_OFFSET_M] * 2),
+                         "map", number, None, "train")
+
+    with pytest.raises(KeyboardInterrupt):
+        write_dataset(tmp_path / "new", submaps(3), {})
+    assert not (tmp_path / "new").exists()
+    write_dataset(tmp_path / "old", submaps(99), {})
+    before = sorted(path.name for path in (tmp_path / "old").iterdir())
+    with pytest.raises(KeyboardInterrupt):
+        write_dataset(tmp_path / "old", (Submap(s.points, s.center, s.bounds, "other", s.index, None, "train")
+                                         for s in submaps(2)), {})
+    assert sorted(path.name for path in (tmp_path / "old").iterdir()) == before
+    assert len(read_dataset(tmp_path / "old").records) == 5
+
+
 def test_tiles_partition_the_map_with_exact_local_coordinates():
     rng = np.random.default_rng(5)
     points = UTM_OFFSET_M + rng.uniform([0, 0, 0], [130, 95, 40], (300_000, 3))
@@ -421,12 +443,21 @@ def test_build_map_and_tile_cli(run_cli, kitti_root, tmp_path):
     assert code == 0, err
     (record,) = read_dataset(tmp_path / "ds").records
     assert (record.source, record.n_points, record.split) == ("kitti-00", 4, "train")
-    write_points(tmp_path / "map.ply", UTM_OFFSET_M + np.random.default_rng(6).uniform(0, 50, (2000, 3)))
+    points = UTM_OFFSET_M + np.random.default_rng(6).uniform(0, 50, (2000, 3))
+    intensity, label = np.arange(2000, dtype=np.float32), (np.arange(2000) % 7).astype(np.uint16)
+    write_points(tmp_path / "map.ply", points, attributes={"intensity": intensity, "label": label})
     code, _, err = run_cli("tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "tiles"),
                            "--tile", "25,25,50")
     assert code == 0, err
     records = read_dataset(tmp_path / "tiles").records
     assert sum(record.n_points for record in records) == 2000 and all(record.pose is None for record in records)
+    for record in records:  # each tile keeps its points' attributes, dtypes included
+        cloud = read_point_cloud(record.path)
+        world = cloud.points + record.origin
+        index = cKDTree(points).query(world)[1]
+        assert cloud.attributes["label"].dtype == np.uint16
+        np.testing.assert_array_equal(cloud.attributes["intensity"], intensity[index])
+        np.testing.assert_array_equal(cloud.attributes["label"], label[index])
     code, _, err = run_cli("tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "t"),
                            "--tile", "25,25")
     assert code == 2 and err.startswith("error: --tile")

@@ -23,7 +23,7 @@ from mapsqueeze.data.sequences import estimate_poses, open_sequences
 from mapsqueeze.errors import DataError, MapsqueezeError
 from mapsqueeze.geometry.tiling import TILE_SIZE_M, tile_map
 from mapsqueeze.geometry.voxel import as_lengths
-from mapsqueeze.io import read_points, write_points
+from mapsqueeze.io import read_point_cloud, write_points
 
 _DEFAULT_SIZE = ",".join(f"{length:g}" for length in TILE_SIZE_M)
 _SPLIT_HELP = f"Put every submap in this split ({', '.join(SPLITS)}); default: KITTI 08 test, every 10th val"
@@ -95,18 +95,21 @@ def build_map(
 @app.command("tile")
 def tile(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map point cloud (any format mapsqueeze reads)."),
-    out_dir: Path = typer.Option(..., "-o", "--out", help="Output directory: one PLY per tile + manifest.json."),
+    out_dir: Path = typer.Option(..., "-o", "--out", help="Output directory: one PLY per tile (points and attributes) + manifest.json."),
     tile_size: str = typer.Option(_DEFAULT_SIZE, "--tile", help="Tile size x,y,z (m)."),
     split: str = typer.Option("", "--split", help=_SPLIT_HELP),
 ) -> None:
-    """Cut a map into grid tiles (float32 coordinates relative to each tile's float64 origin)."""
+    """Cut a map into grid tiles (float32 coordinates relative to each tile's float64 origin, every attribute of the
+    map with its points)."""
     size = _lengths(tile_size, "--tile")
     _check_split(split)
-    points = read_points(map_path)
+    cloud = read_point_cloud(map_path)
+    points = cloud.points
     tiles = tile_map(points, size)
     source = map_path.name.split(".")[0]
     submaps = (
-        Submap(points[tile.point_indices], tile.origin + tile.size / 2, tile.bounds, source, number, None, split)
+        Submap(points[tile.point_indices], tile.origin + tile.size / 2, tile.bounds, source, number, None, split,
+               {name: values[tile.point_indices] for name, values in cloud.attributes.items()})
         for number, tile in enumerate(tiles)
     )
     write_dataset(out_dir, submaps, {"map": str(map_path), "tile_size_m": list(size)})

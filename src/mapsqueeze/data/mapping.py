@@ -240,15 +240,32 @@ def _read_manifest(path: Path) -> dict:
     return manifest
 
 
+def _record(submap: Submap, name: str) -> dict:
+    """The manifest entry of a submap written as `name`."""
+    return {
+        "file": name,
+        "source": submap.source,
+        "index": submap.index,
+        "split": submap.split,
+        "n_points": submap.n_points,
+        "origin": submap.origin.tolist(),
+        "center": np.asarray(submap.center, dtype=np.float64).tolist(),
+        "bounds": submap.bounds.tolist(),
+        "pose": None if submap.pose is None else np.asarray(submap.pose, dtype=np.float64).tolist(),
+    }
+
+
 def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: dict) -> Path:
     """Write each submap as `<source>-<index>.ply` (float32 x, y, z relative to its origin, then its attributes)
     and update `manifest.json`; returns the manifest path. All writes are atomic.
 
     The manifest keeps the entries of sources not written now, so sequences can be added one call at a time;
     a source written again replaces its previous entries. `meta` (JSON-serialisable, e.g. the build
-    parameters) is stored per source written.
+    parameters) is stored per source written. A write that fails or is interrupted removes the submap files it
+    wrote that the manifest does not name (and the directory, when it made it and left it empty).
     """
     out_dir = Path(out_dir)
+    created = not out_dir.exists()
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -260,25 +277,22 @@ def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: d
         else {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "sources": {}, "submaps": []}
     )
     records = []
-    for submap in submaps:
-        if submap.split not in SPLITS:
-            raise DataError(f"submap {submap.source}/{submap.index}: unknown split {submap.split!r}")
-        name = _file_name(submap.source, submap.index)
-        size = submap.bounds[1] - submap.bounds[0]
-        write_points(out_dir / name, to_local(submap.points, submap.origin, size), attributes=submap.attributes)
-        records.append(
-            {
-                "file": name,
-                "source": submap.source,
-                "index": submap.index,
-                "split": submap.split,
-                "n_points": submap.n_points,
-                "origin": submap.origin.tolist(),
-                "center": np.asarray(submap.center, dtype=np.float64).tolist(),
-                "bounds": submap.bounds.tolist(),
-                "pose": None if submap.pose is None else np.asarray(submap.pose, dtype=np.float64).tolist(),
-            }
-        )
+    try:
+        for submap in submaps:
+            if submap.split not in SPLITS:
+                raise DataError(f"submap {submap.source}/{submap.index}: unknown split {submap.split!r}")
+            name = _file_name(submap.source, submap.index)
+            size = submap.bounds[1] - submap.bounds[0]
+            write_points(out_dir / name, to_local(submap.points, submap.origin, size), attributes=submap.attributes)
+            records.append(_record(submap, name))
+    except BaseException:  # an error, Ctrl-C or SIGTERM: remove the files no manifest names, and a folder made now
+        named = {record["file"] for record in manifest["submaps"]}
+        for record in records:
+            if record["file"] not in named:
+                (out_dir / record["file"]).unlink(missing_ok=True)
+        if created and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+        raise
     written = {record["source"] for record in records}
     manifest["sources"].update({source: meta for source in sorted(written)})
     kept = [record for record in manifest["submaps"] if record["source"] not in written]
