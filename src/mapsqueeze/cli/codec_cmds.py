@@ -88,7 +88,8 @@ def compress_command(
     workers: int | None = _workers_option(),
     dask_scheduler: str | None = _dask_option(),
     max_error: float | None = typer.Option(None, "--max-error", metavar="METRES",
-                                           help="D_e budget: each tile gets the smallest coding within it"),
+                                           help="D_e budget: each tile gets the smallest coding within it, as "
+                                                "decoded by default (fewer points decoded: a larger D_e)"),
     bpp: float | None = typer.Option(None, "--bpp", metavar="BITS",
                                      help="rate budget in bits per point: the lowest D_e that fits"),
     fallback: bool = typer.Option(True, "--fallback/--no-fallback",
