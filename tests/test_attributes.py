@@ -154,6 +154,9 @@ def test_selection_bbox_density_and_info():
     assert mapsqueeze.info(metadata_only).attributes == () and mapsqueeze.decompress_cloud(metadata_only).metadata
     with pytest.raises(InvalidPointCloudError, match="no attribute nope"):
         parse_selection("intensity,nope", ["intensity"])
+    for selection in (",", "intensity,", ["intensity", ""]):
+        with pytest.raises(InvalidPointCloudError, match="has an empty name"):
+            parse_selection(selection, ["intensity"])
     with pytest.raises(InvalidPointCloudError, match="attribute voxel"):
         mapsqueeze.compress(points, attributes=attributes, attribute_options=AttributeOptions(voxel_m=0.0))
 

@@ -461,3 +461,6 @@ def test_build_map_and_tile_cli(run_cli, kitti_root, tmp_path):
     code, _, err = run_cli("tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "t"),
                            "--tile", "25,25")
     assert code == 2 and err.startswith("error: --tile")
+    code, out, err = run_cli("tile", str(tmp_path / "map.ply"), "-o", str(tmp_path / "t"), "--tile", "25,0,50")
+    assert (code, out) == (2, "") and err == "error: --tile: expected three comma-separated positive lengths in " \
+        "metres (x,y,z), got '25,0,50'\n"

@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 from rich.progress import Progress
 
-from mapsqueeze.cli.app import app, make_console, parse_numbers
+from mapsqueeze.cli.app import app, counted, make_console, parse_numbers
 from mapsqueeze.data.mapping import (
     MAX_RANGE_M,
     MIN_RANGE_M,
@@ -20,7 +20,7 @@ from mapsqueeze.data.mapping import (
     write_dataset,
 )
 from mapsqueeze.data.sequences import estimate_poses, open_sequences
-from mapsqueeze.errors import DataError, MapsqueezeError
+from mapsqueeze.errors import DataError, InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.tiling import TILE_SIZE_M, tile_map
 from mapsqueeze.geometry.voxel import as_lengths
 from mapsqueeze.io import read_point_cloud, write_points
@@ -31,8 +31,12 @@ _SPLIT_HELP = f"Put every submap in this split ({', '.join(SPLITS)}); default: K
 
 def _lengths(text: str, option: str) -> tuple[float, float, float]:
     """'40,40,15' -> (40.0, 40.0, 15.0) metres."""
-    lengths = parse_numbers(text, 3, option, "three comma-separated lengths in metres (x,y,z)")
-    return tuple(as_lengths(lengths, option))
+    meaning = "three comma-separated positive lengths in metres (x,y,z)"
+    lengths = parse_numbers(text, 3, option, meaning)
+    try:
+        return tuple(as_lengths(lengths, option))
+    except InvalidPointCloudError:
+        raise MapsqueezeError(f"{option}: expected {meaning}, got {text!r}") from None
 
 
 def _check_split(split: str) -> None:
@@ -113,4 +117,4 @@ def tile(
         for number, tile in enumerate(tiles)
     )
     write_dataset(out_dir, submaps, {"map": str(map_path), "tile_size_m": list(size)})
-    make_console().print(f"{len(points):,} points -> {len(tiles):,} tiles in {out_dir}")
+    make_console().print(f"{counted(len(points), 'point')} -> {counted(len(tiles), 'tile')} in {out_dir}")

@@ -172,6 +172,8 @@ def parse_selection(selection: str | list[str] | tuple[str, ...] | None, names: 
     if selection == "none":
         return []
     wanted = [part.strip() for part in selection.split(",")] if isinstance(selection, str) else list(selection)
+    if not all(wanted):
+        raise InvalidPointCloudError(f"attribute list {selection!r} has an empty name (names, comma-separated)")
     unknown = [name for name in wanted if name not in names]
     if unknown:
         raise InvalidPointCloudError(f"no attribute {', '.join(unknown)} in the input (it has: "
