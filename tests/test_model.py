@@ -448,3 +448,15 @@ def test_init_from_another_rate_copies_learned_weights_but_not_kernel_geometry(t
     assert not torch.equal(kernel_points, source.encoder.blocks[2].kp_conv.kernel_points)
     # e0 spawns 6 children per point, e1 5: the K-wide output layers keep their own initialisation
     assert target.decoder.blocks[0].offset_mlp[2].weight.shape[0] == 18
+
+
+def test_a_model_folder_without_weights_is_named_as_such(tmp_path):
+    """A folder given as the model that holds no weights is named as a folder without model.safetensors, not as a
+    model that is not found; a name that is neither a folder nor a shipped model is not found."""
+    from mapsqueeze.model.shipped import resolve_model_dir
+
+    with pytest.raises(ModelError, match=r"model folder '.*' holds no model.safetensors"):
+        resolve_model_dir(tmp_path)
+    with pytest.raises(ModelError, match=r"model 'e9' not found \(a directory with model.safetensors"):
+        resolve_model_dir("e9")
+    assert resolve_model_dir("e1").name == "e1"

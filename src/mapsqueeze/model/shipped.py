@@ -42,6 +42,9 @@ def resolve_model_dir(name_or_path: str | Path, shipped_only: bool = False) -> P
     if re.fullmatch(r"[A-Za-z0-9_.-]+", str(name_or_path)) and (shipped / WEIGHTS_FILE).is_file():
         return shipped
     available = ", ".join(shipped_models()) or "none shipped"
+    if not shipped_only and path.is_dir():
+        raise ModelError(f"model folder {str(name_or_path)!r} holds no {WEIGHTS_FILE} (a model folder holds "
+                         f"{WEIGHTS_FILE} + {CONFIG_FILE}; shipped models: {available})")
     raise ModelError(f"model {str(name_or_path)!r} not found (a directory with {WEIGHTS_FILE} + {CONFIG_FILE}, "
                      f"or a shipped model: {available})")
 
