@@ -10,7 +10,7 @@ import laspy
 import numpy as np
 import pytest
 
-from mapsqueeze.errors import FieldRenamedWarning, InvalidPointCloudError
+from mapsqueeze.errors import CrsNotWrittenWarning, FieldRenamedWarning, InvalidPointCloudError
 from mapsqueeze.io import (
     PointCloud,
     dropped_fields,
@@ -442,6 +442,24 @@ def test_cli_decompress_warns_that_las_cannot_take_an_epsg_code_alone(run_cli, t
     assert code == 0 and err == ("warning: d.las cannot hold the CRS (EPSG:32632) as given: LAS takes a WKT or the "
                                  "LAS records it was read from; not written\n"), err
     assert "crs" not in read_point_cloud(tmp_path / "d.las").metadata
+
+
+@pytest.mark.parametrize("output", ["d.las", "d.ply", "d.pcd"])
+def test_api_writes_warn_of_a_crs_they_drop(tiny_model_dir, tmp_path, output):
+    """Through the API too (decompress_file, streamed PLY included, and write_points), a CRS the output cannot hold
+    is a CrsNotWrittenWarning, not a silent loss; the CLI prints the same warning as its one line."""
+    import mapsqueeze
+
+    points = np.random.default_rng(0).uniform(0, 5, (300, 3))
+    (tmp_path / "a.msq").write_bytes(mapsqueeze.compress(points, model=tiny_model_dir,
+                                                         metadata={"crs": "EPSG:32632"}))
+    with pytest.warns(CrsNotWrittenWarning, match=f"{output} cannot hold the CRS \\(EPSG:32632\\)"):
+        mapsqueeze.decompress_file(tmp_path / "a.msq", tmp_path / output, model=tiny_model_dir)
+    with pytest.warns(CrsNotWrittenWarning, match="w.ply cannot hold the CRS"):
+        write_points(tmp_path / "w.ply", points, metadata={"crs": "EPSG:32632"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_points(tmp_path / "w.laz", points, metadata={"crs": WKT_UTM32})
 
 
 def coloured_cloud(n: int = 600, seed: int = 3) -> tuple[np.ndarray, dict[str, np.ndarray]]:

@@ -48,6 +48,7 @@ from mapsqueeze.io import (
     iter_point_clouds,
     validate_attributes,
     validate_points,
+    warn_of_crs_loss,
     work_dir,
     write_point_chunks,
 )
@@ -438,7 +439,9 @@ def decompress_file(input_path: str | os.PathLike, output_path: str | os.PathLik
                 raise _nothing_to_write(input_path, bbox, density)
 
         float32_certain = float(np.abs(summary.bounds).max()) + 1.0 < FLOAT32_SAFE_ABS_M
-        return write_ply_stream(Path(output_path), tiles(), float32_certain, lambda _: sizes[0] * summary.n_tiles)
+        count = write_ply_stream(Path(output_path), tiles(), float32_certain, lambda _: sizes[0] * summary.n_tiles)
+        warn_of_crs_loss(summary.metadata, output_path, format)
+        return count
     with work_dir(SPILL_PREFIX, spill_dir) as spill:
         spill_path = os.path.join(spill, "points.f64")
         streams = [open(os.path.join(spill, f"attribute{column}"), "wb") for column in range(len(specs))]

@@ -53,3 +53,8 @@ class FieldRenamedWarning(MapsqueezeWarning):
 
 class TileLimitWarning(MapsqueezeWarning):
     """A file was written whose tiles decode to more points than decompress allows by default (--max-tile-points)."""
+
+
+class CrsNotWrittenWarning(MapsqueezeWarning):
+    """A point-cloud file was written without the CRS its metadata holds: the format has no place for it (all but
+    LAS/LAZ), or LAS cannot take it as given (an EPSG code without its WKT)."""

@@ -167,7 +167,7 @@ def decompress_command(
                                     workers=workers, dask_scheduler=dask_scheduler, attributes=not no_attributes,
                                     device=device)
     summary = api.info(msq)  # what the output could not hold: said once it is written, not before an error
-    warn_dropped(() if no_attributes else summary.attributes, output, out_format, summary.metadata)
+    warn_dropped(() if no_attributes else summary.attributes, output, out_format)
     print_line(f"wrote {counted(count, 'point')} to {output}")
 
 

@@ -5,10 +5,7 @@ from pathlib import Path
 import typer
 
 from mapsqueeze.cli.app import FORMAT_HELP, app, counted, nan_points_line, print_line
-from mapsqueeze.io import (
-    check_output_path, dropped_fields, format_name, holds_crs, holds_metadata, read_point_cloud, unnamed_fields,
-    write_points,
-)
+from mapsqueeze.io import check_output_path, dropped_fields, format_name, read_point_cloud, unnamed_fields, write_points
 
 
 @app.command()
@@ -25,17 +22,16 @@ def convert(
     check_output_path(output_path, inputs=(input_path,))
     cloud = read_point_cloud(input_path, format=in_format)
     write_points(output_path, cloud.points, format=out_format, attributes=cloud.attributes, metadata=cloud.metadata)
-    warn_dropped(cloud.attributes, output_path, out_format, cloud.metadata)
+    warn_dropped(cloud.attributes, output_path, out_format)
     if cloud.nan_points_dropped:
         print_line(nan_points_line(cloud.nan_points_dropped))
     print_line(f"wrote {counted(len(cloud), 'point')} to {output_path}")
 
 
-def warn_dropped(names, output_path: Path, out_format: str | None = None, metadata: dict | None = None) -> None:
-    """One warning line on stderr naming the attributes the output format cannot hold, if any, one naming those it
-    holds without their names and dtypes (.npy's columns, unless already named so), and one naming the CRS
-    (`metadata["crs"]`: "EPSG:n" or a WKT from a LAS file, any JSON value from the API) where the format has no
-    place for it."""
+def warn_dropped(names, output_path: Path, out_format: str | None = None) -> None:
+    """One warning line on stderr naming the attributes the output format cannot hold, if any, and one naming those
+    it holds without their names and dtypes (.npy's columns, unless already named so). (A CRS the output cannot
+    hold is a CrsNotWrittenWarning of the writer's, printed as it is written.)"""
     dropped = dropped_fields(names, output_path, out_format)
     if dropped:
         print_line(f"warning: {output_path.name} cannot hold attribute(s) {', '.join(dropped)}; not written",
@@ -45,10 +41,3 @@ def warn_dropped(names, output_path: Path, out_format: str | None = None, metada
         print_line(f"warning: {output_path.name} holds attributes as unnamed float64 columns: "
                    f"{', '.join(f'{name} as column{3 + column}' for column, name in enumerate(unnamed))}",
                    stderr=True)
-    crs = (metadata or {}).get("crs")
-    if crs and not holds_crs(metadata, output_path, out_format):
-        text = str(crs)
-        shown = "a WKT" if "[" in text else text
-        given = (" as given: LAS takes a WKT or the LAS records it was read from"
-                 if holds_metadata(output_path, out_format) else "")
-        print_line(f"warning: {output_path.name} cannot hold the CRS ({shown}){given}; not written", stderr=True)

@@ -18,6 +18,7 @@ from mapsqueeze.io.formats import (
     read_point_cloud,
     read_points,
     unnamed_fields,
+    warn_of_crs_loss,
     write_point_chunks,
     write_points,
 )
@@ -55,6 +56,7 @@ __all__ = [
     "unnamed_fields",
     "validate_attributes",
     "validate_points",
+    "warn_of_crs_loss",
     "write_point_chunks",
     "work_dir",
     "write_points",

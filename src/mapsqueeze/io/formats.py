@@ -19,6 +19,7 @@ coordinates float32 would round by more than 1 mm. LAS/LAZ store integers (see i
 """
 
 import os
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapsqueeze.errors import InvalidPointCloudError, PointCloudFormatError
+from mapsqueeze.errors import CrsNotWrittenWarning, InvalidPointCloudError, PointCloudFormatError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.io import ply, tables
 from mapsqueeze.io.pcd import pcd_chunks, write_pcd
@@ -151,6 +152,25 @@ def holds_crs(metadata: dict, path: str | os.PathLike, format: str | None = None
     return las.keeps_crs(metadata)
 
 
+def crs_loss(metadata: dict, path: str | os.PathLike, format: str | None = None) -> str | None:
+    """Why a file of this format, written with `metadata`, does not keep its CRS (`metadata["crs"]`: "EPSG:n" or a
+    WKT from a LAS file, any JSON value from the API), or None when it keeps it or there is none."""
+    crs = (metadata or {}).get("crs")
+    if not crs or holds_crs(metadata, path, format):
+        return None
+    text = str(crs)
+    shown = "a WKT" if "[" in text else text
+    given = " as given: LAS takes a WKT or the LAS records it was read from" if holds_metadata(path, format) else ""
+    return f"{Path(path).name} cannot hold the CRS ({shown}){given}; not written"
+
+
+def warn_of_crs_loss(metadata: dict, path: str | os.PathLike, format: str | None = None) -> None:
+    """A CrsNotWrittenWarning where a file of this format, written with `metadata`, drops its CRS (`crs_loss`)."""
+    reason = crs_loss(metadata, path, format)
+    if reason:
+        warnings.warn(CrsNotWrittenWarning(reason), stacklevel=3)
+
+
 def _existing_file(path: str | os.PathLike) -> Path:
     path = Path(path)
     if path.is_dir():
@@ -260,11 +280,13 @@ def _write(path: Path, chunks: Callable[[], Iterable], format: str | None) -> tu
     source = _checked_chunks(chunks, path)
     stats = _cloud_stats(source, path)
     try:
-        return stats, fmt.write(path, source, stats)
+        stored = fmt.write(path, source, stats)
     except OSError as exc:
         raise PointCloudFormatError(f"{path}: cannot write ({exc.strerror or exc})") from None
     except InvalidPointCloudError as exc:
         raise InvalidPointCloudError(f"{path}: {exc}") from None
+    warn_of_crs_loss(stats.metadata, path, format)
+    return stats, stored
 
 
 def write_point_chunks(path: str | os.PathLike, chunks: Callable[[], Iterable], format: str | None = None) -> int:
