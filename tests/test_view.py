@@ -328,18 +328,18 @@ def test_a_file_beyond_the_default_tile_limit_warns_at_compress_and_views_with_t
     points, over 2^23) is named by a warning at compress, with the --max-tile-points that decodes it, and `view`
     takes that flag as `decompress` does (it had none, so such a file could not be viewed). The guard is lowered
     here to the tiny model's native count minus one."""
-    import mapsqueeze.codec.compress as compress_module
+    import mapsqueeze.codec.tilejobs as tilejobs_module
 
     data = mapsqueeze.compress(map_points, model=model_dir, fallback=False)
     natives = [len(tile.embedding) for tile in mapsqueeze.tiles(data)]
     factor = int(np.prod(load_model(model_dir).config.upsampling_factors))
     limit = max(natives) * factor - 1
-    monkeypatch.setattr(compress_module, "DEFAULT_MAX_TILE_POINTS", limit)
+    monkeypatch.setattr(tilejobs_module, "DEFAULT_MAX_TILE_POINTS", limit)
     np.save(tmp_path / "map.npy", map_points)
     code, out, err = run_cli("compress", str(tmp_path / "map.npy"), "-o", str(tmp_path / "map.msq"), "--model",
                              str(model_dir), "--no-fallback", "--post-filter", "off")
     assert code == 0 and err.count("\n") == 1, err
-    assert err.startswith("warning: 1 tile(s) decode to more than the") and \
+    assert err.startswith("warning: 1 tile decodes to more than the") and \
         f"--max-tile-points {limit + 1}" in err
     code, out, err = run_cli("view", str(tmp_path / "map.msq"), "-o", str(tmp_path / "v.html"), "--model",
                              str(model_dir), "--max-tile-points", str(limit))
@@ -347,3 +347,20 @@ def test_a_file_beyond_the_default_tile_limit_warns_at_compress_and_views_with_t
     code, out, err = run_cli("view", str(tmp_path / "map.msq"), "-o", str(tmp_path / "v.html"), "--model",
                              str(model_dir), "--max-tile-points", str(limit + 1))
     assert code == 0 and (tmp_path / "v.html").exists(), err
+
+
+def test_a_tile_over_the_limit_by_its_input_count_warns_too(model_dir, monkeypatch):
+    """decompress also refuses a tile whose input count (what --points splits by) is over the guard, whatever its
+    coding: a raw tile of 60 points with the guard at 59 is named with the flag that decodes it."""
+    import mapsqueeze.codec.tilejobs as tilejobs_module
+    from mapsqueeze.errors import DecodeLimitError, TileLimitWarning
+
+    sparse = np.random.default_rng(5).uniform(0, [7, 7, 3], (60, 3))
+    monkeypatch.setattr(tilejobs_module, "DEFAULT_MAX_TILE_POINTS", 59)
+    with pytest.warns(TileLimitWarning, match=r"1 tile decodes to more than the 59 points .* \(tile \(0, 0, 0\): 60\); "
+                                              r"decompress or view with --max-tile-points 60"):
+        data = mapsqueeze.compress(sparse, model=model_dir)
+    assert [tile.coding for tile in mapsqueeze.tiles(data)] == ["raw"]
+    with pytest.raises(DecodeLimitError):
+        mapsqueeze.decompress(data, model=model_dir, max_tile_points=59)
+    assert len(mapsqueeze.decompress(data, model=model_dir, max_tile_points=60)) == 60

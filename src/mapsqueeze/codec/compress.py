@@ -7,7 +7,6 @@ import importlib
 import os
 import sys
 import threading
-import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
@@ -23,7 +22,6 @@ from mapsqueeze.codec.attributes import (
     parse_selection,
 )
 from mapsqueeze.codec.container import (
-    DEFAULT_MAX_TILE_POINTS,
     AttributeSection,
     TileCoding,
     TileRecord,
@@ -35,11 +33,13 @@ from mapsqueeze.codec.executor import ProgressCallback, default_workers, open_ex
 from mapsqueeze.codec.header import DefaultCount, Header
 from mapsqueeze.codec.latent import LATENT_CODECS, LatentCodec, LatentLayout
 from mapsqueeze.codec.modes import Candidate, RateTarget, choose, choose_for_error, choose_for_rate, summary
-from mapsqueeze.codec.postfilter import OFF, PATCH_CHOICES, PostFilter, patch_choice_prefix
+from mapsqueeze.codec.postfilter import OFF, PATCH_CHOICES, patch_choice_prefix
 from mapsqueeze.codec.rawtile import RAW_STEP_M
 from mapsqueeze.codec.tileattributes import AttributeCoder
-from mapsqueeze.codec.tilejobs import EncodedTile, TileJob, candidates_job, check_tile_size, embed_job
-from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError, TileLimitWarning
+from mapsqueeze.codec.tilejobs import (
+    EncodedTile, TileJob, candidates_job, check_tile_size, embed_job, warn_of_tile_limit,
+)
+from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import fit_grid, tile_map
 from mapsqueeze.geometry.validation import validate_points
@@ -396,7 +396,7 @@ def _assemble(encoded: list[EncodedTile], choices: list[Candidate], model, laten
                 post_filter = PATCH_CHOICES
         records.append(TileRecord(tile.index, tile.n_points, tile.bounds_lo, tile.bounds_hi, choice.coding,
                                   choice.payload, post_filter if choice.coding is TileCoding.network else OFF))
-    _warn_of_tile_limit(encoded, records, model)
+    warn_of_tile_limit(encoded, [record.post_filter for record in records], model)
     layout = latent.layout
     header = Header(
         model_id=model.model_id,
@@ -417,23 +417,6 @@ def _assemble(encoded: list[EncodedTile], choices: list[Candidate], model, laten
         return geometry
     section = AttributeSection(attributes.schema, attributes.streams(geometry, [tile.choice for tile in encoded]))
     return serialise_container(header, records, section)
-
-
-def _warn_of_tile_limit(encoded: list[EncodedTile], records: list[TileRecord], model) -> None:
-    """A TileLimitWarning when a network tile's native count (its embedding points x the upsampling factors x the
-    post-filter's copies: what the decoder computes whole) is above DEFAULT_MAX_TILE_POINTS, which decompress
-    refuses unless --max-tile-points allows it (a volume filled with points, such as dense vegetation at e3)."""
-    factor = int(np.prod(model.config.upsampling_factors))
-    natives = {tile.index: len(tile.points) * factor * (1 + PostFilter.parse(record.post_filter).spread_copies)
-               for tile, record in zip(encoded, records)
-               if record.coding is TileCoding.network and tile.points is not None}
-    over = {index: native for index, native in natives.items() if native > DEFAULT_MAX_TILE_POINTS}
-    if over:
-        index, native = max(over.items(), key=lambda item: item[1])
-        warnings.warn(TileLimitWarning(
-            f"{len(over)} tile(s) decode to more than the {DEFAULT_MAX_TILE_POINTS:,} points per tile that "
-            f"decompress and view allow by default (tile {index}: {native:,}); decompress or view it with "
-            f"--max-tile-points {max(over.values())} (API: max_tile_points=)"), stacklevel=2)
 
 
 def _embed_tiles(tile_points: Iterable[tuple[tuple[int, int, int], np.ndarray, dict]], n_tiles: int,

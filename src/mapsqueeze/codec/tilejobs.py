@@ -5,11 +5,14 @@ search, on one decode of the tile's coded embedding, as the decoder will see it.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from mapsqueeze.codec.container import BOUNDS_STEPS, MAX_POINTS_PER_TILE, TileCoding, frame_origin, quantise_bounds
+from mapsqueeze.codec.container import (
+    BOUNDS_STEPS, DEFAULT_MAX_TILE_POINTS, MAX_POINTS_PER_TILE, TileCoding, frame_origin, quantise_bounds,
+)
 from mapsqueeze.codec.distortion import CandidateDistortion
 from mapsqueeze.codec.entropy import ByteReader
 from mapsqueeze.codec.latent import LATENT_CODECS
@@ -19,6 +22,7 @@ from mapsqueeze.codec.postfilter import (
     CHOICE_SEARCH_START,
     OFF,
     PatchChoiceSearch,
+    PostFilter,
     apply_patch_filter,
     choices_pay_clearly,
     choose_patch_filter,
@@ -27,7 +31,7 @@ from mapsqueeze.codec.postfilter import (
 )
 from mapsqueeze.codec.rawtile import decode_raw_tile, encode_raw_tile
 from mapsqueeze.codec.tilepoints import keep_inside, network_points, octree_points
-from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError
+from mapsqueeze.errors import InvalidPointCloudError, MapsqueezeError, TileLimitWarning
 from mapsqueeze.geometry.bounds import bounding_box
 from mapsqueeze.geometry.tiling import to_local
 
@@ -57,6 +61,28 @@ class EncodedTile:
     post_filter: int = OFF  # the network output's decode post-filter (`codec.postfilter`)
     patch_choices: PatchChoiceSearch | None = None  # the search's result on the network's decode, when run
     choice: Candidate | None = None
+
+
+def warn_of_tile_limit(encoded: list[EncodedTile], post_filters: list[int], model) -> None:
+    """A TileLimitWarning when a tile would decode to more than DEFAULT_MAX_TILE_POINTS points, which decompress
+    refuses unless --max-tile-points allows it: a network tile's native count (its embedding points x the upsampling
+    factors x its post-filter's copies, `post_filters`: the written ones, what the decoder computes whole), and any
+    tile's input count (version 1's default; what `--points` splits by), whichever is larger."""
+    factor = int(np.prod(model.config.upsampling_factors))
+    counts = {}
+    for tile, post_filter in zip(encoded, post_filters):
+        native = 0
+        if tile.choice.coding is TileCoding.network and tile.points is not None:
+            native = len(tile.points) * factor * (1 + PostFilter.parse(post_filter).spread_copies)
+        counts[tile.index] = max(native, tile.n_points)
+    over = {index: count for index, count in counts.items() if count > DEFAULT_MAX_TILE_POINTS}
+    if over:
+        index, count = max(over.items(), key=lambda item: item[1])
+        tiles = "1 tile decodes" if len(over) == 1 else f"{len(over):,} tiles decode"
+        warnings.warn(TileLimitWarning(
+            f"{tiles} to more than the {DEFAULT_MAX_TILE_POINTS:,} points per tile that decompress and view allow "
+            f"by default (tile {index}: {count:,}); decompress or view with --max-tile-points {count} (API: "
+            "max_tile_points=)"), stacklevel=3)
 
 
 def check_tile_size(index: tuple[int, int, int], n_points: int) -> None:
