@@ -155,6 +155,11 @@ def test_las_field_that_cannot_hold_the_values_is_written_as_an_extra_dimension(
         warnings.simplefilter("error")
         write_points(tmp_path / "b.las", points, attributes={"intensity": np.round(intensity * 1000)})
     np.testing.assert_array_equal(laspy.read(tmp_path / "b.las").intensity, np.round(intensity * 1000))
+    with pytest.warns(FieldRenamedWarning) as caught:  # with labels beyond 31: format 6, intensity alone moved
+        write_points(tmp_path / "c.las", points, attributes={"intensity": intensity,
+                                                             "classification": np.full(300, 44, np.uint8)})
+    assert len(caught) == 1 and laspy.read(tmp_path / "c.las").header.point_format.id == 6
+    np.testing.assert_array_equal(laspy.read(tmp_path / "c.las").classification, 44)
     write_points(tmp_path / "scan.ply", points, attributes={"intensity": intensity})
     code, out, err = run_cli("convert", str(tmp_path / "scan.ply"), str(tmp_path / "scan.las"))
     assert code == 0 and "wrote 300 points" in out

@@ -61,6 +61,7 @@ class Format:
     streams: bool  # True: memory-mapped or chunked reading and chunk-by-chunk writing; False: whole in memory
     metadata: bool = False  # True: writes the file metadata (LAS header records: the CRS)
     names: bool = True  # False: attributes are stored as unnamed float64 columns (.npy), read back as column3, ...
+    value_ranges: bool = False  # True: its writer needs each attribute's value range (`CloudStats.ranges`)
 
     def holds(self, name: str) -> bool:
         return self.fields is ANY_FIELDS or name in self.fields
@@ -86,8 +87,10 @@ FORMATS: dict[str, Format] = {fmt.name: fmt for fmt in (
     Format("ply-ascii", (), ply.ply_chunks, partial(ply.write_ply, text=True), ANY_FIELDS, False),
     Format("pcd", (".pcd",), pcd_chunks, partial(write_pcd, encoding="binary"), ANY_FIELDS, False),
     Format("pcd-ascii", (), pcd_chunks, partial(write_pcd, encoding="ascii"), ANY_FIELDS, False),
-    Format("las", (".las",), _las_chunks, partial(_write_las, compress=False), ANY_FIELDS, True, True),
-    Format("laz", (".laz",), _las_chunks, partial(_write_las, compress=True), ANY_FIELDS, True, True),
+    Format("las", (".las",), _las_chunks, partial(_write_las, compress=False), ANY_FIELDS, True, True,
+           value_ranges=True),
+    Format("laz", (".laz",), _las_chunks, partial(_write_las, compress=True), ANY_FIELDS, True, True,
+           value_ranges=True),
     Format("npy", (".npy",), tables.npy_chunks, tables.write_npy, ANY_FIELDS, True, names=False),
 )}
 
@@ -253,7 +256,8 @@ def _value_range(values: np.ndarray) -> tuple[float, float, bool]:
     return float(values.min()), float(values.max()), whole
 
 
-def _cloud_stats(chunks: ChunkSource, path: Path) -> CloudStats:
+def _cloud_stats(chunks: ChunkSource, path: Path, value_ranges: bool) -> CloudStats:
+    """The statistics of a pass over the chunks; each attribute's value range only with `value_ranges`."""
     n, lowest, highest, error, dtypes, metadata = 0, np.full(3, np.inf), np.full(3, -np.inf), 0.0, {}, {}
     ranges: dict[str, tuple[float, float, bool]] = {}
     for index, chunk in enumerate(chunks()):
@@ -265,7 +269,7 @@ def _cloud_stats(chunks: ChunkSource, path: Path) -> CloudStats:
         chunk_low, chunk_high = bounding_box(chunk.points)
         lowest, highest = np.minimum(lowest, chunk_low), np.maximum(highest, chunk_high)
         error = max(error, float32_error_m(chunk.points))
-        for name, values in chunk.attributes.items():
+        for name, values in chunk.attributes.items() if value_ranges else ():
             low, high, whole = _value_range(values)
             if name in ranges:
                 low, high, whole = min(low, ranges[name][0]), max(high, ranges[name][1]), whole and ranges[name][2]
@@ -278,7 +282,7 @@ def _cloud_stats(chunks: ChunkSource, path: Path) -> CloudStats:
 def _write(path: Path, chunks: Callable[[], Iterable], format: str | None) -> tuple[CloudStats, tuple[str, ...]]:
     fmt = FORMATS[format_name(path, format)]
     source = _checked_chunks(chunks, path)
-    stats = _cloud_stats(source, path)
+    stats = _cloud_stats(source, path, fmt.value_ranges)
     try:
         stored = fmt.write(path, source, stats)
     except OSError as exc:

@@ -240,14 +240,15 @@ def _misfits(stats: CloudStats, point_format: laspy.PointFormat) -> list[str]:
 
 def _point_format(stats: CloudStats, preferred: int | None) -> laspy.PointFormat:
     """The preferred point format, else the first of _WRITE_FORMATS, that has every standard field given, and of
-    those the first whose fields hold the values given; if none does, the first that has the fields."""
+    those the first whose fields hold the values given; if none does, the first with the fewest fields that do
+    not (a float intensity and classification 44: format 6, where only the intensity cannot stay)."""
     wanted = {name for name in stats.dtypes if name in STANDARD_FIELDS}
     candidates = [laspy.PointFormat(candidate)
                   for candidate in ([preferred] if preferred is not None else []) + list(_WRITE_FORMATS)
                   if wanted <= set(laspy.PointFormat(candidate).dimension_names)]
     if not candidates:
         raise InvalidPointCloudError(f"no LAS point format holds all of {', '.join(sorted(wanted))}")
-    return next((candidate for candidate in candidates if not _misfits(stats, candidate)), candidates[0])
+    return min(candidates, key=lambda candidate: len(_misfits(stats, candidate)))  # the first of the fewest
 
 
 def _extra_name(name: str, dtype: np.dtype, taken) -> str:

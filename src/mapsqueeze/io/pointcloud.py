@@ -62,8 +62,9 @@ ChunkSource = Callable[[], Iterable[PointCloud]]
 
 @dataclass(frozen=True)
 class CloudStats:
-    """What a writer needs before the first chunk: count, extent, float32 rounding error, attribute dtypes, and each
-    attribute's values as (smallest, largest, whether all are whole numbers)."""
+    """What a writer needs before the first chunk: count, extent, float32 rounding error, attribute dtypes, and for
+    the formats that ask (`Format.value_ranges`: LAS) each attribute's values as (smallest, largest, whether all
+    are whole numbers)."""
 
     n_points: int
     lowest: np.ndarray
