@@ -68,11 +68,21 @@ def test_dense_cloud_normals_are_taken_in_blocks_with_the_same_result(monkeypatc
     monkeypatch.setattr(normals_module, "PAIRS_AT_ONCE", 5000)
     from scipy.spatial import cKDTree
 
+    held = []
+
     class NoPairsAtOnce(cKDTree):
         def query_pairs(self, *args, **kwargs):
             raise AssertionError("query_pairs holds every pair at once")
 
+        def query_ball_point(self, *args, **kwargs):
+            found = super().query_ball_point(*args, **kwargs)
+            if not kwargs.get("return_length"):
+                held.append(sum(map(len, found)))
+            return found
+
     in_blocks = normals_pca(cloud, tree=NoPairsAtOnce(cloud))
+    largest = int(cKDTree(cloud).query_ball_point(cloud, 0.5, return_length=True).max())  # a point in the pile
+    assert len(held) > 3 and max(held) <= max(5000 // 4, largest)
     np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", at_once, in_blocks)), 1.0, atol=1e-9)
 
 

@@ -3,12 +3,14 @@
 The normal of a point is the eigenvector of the smallest eigenvalue of the covariance of all points within `radius`
 metres of it (the point included). Its sign is arbitrary: D_perp uses |n . d|.
 
-The neighbourhoods are exactly the paper's (no cap). Where the cloud has at most PAIRS_AT_ONCE neighbour pairs
-(counted first with `cKDTree.count_neighbors`, which stores none), all are found at once with `cKDTree.query_pairs`
-(each unordered pair once, 16 bytes a pair: ~1 kB per point for a map voxel-filtered at 10 cm as in the paper, ~100
-neighbours within 0.5 m); a denser cloud (an unfiltered scan, repeated points) is taken in blocks of points whose
-neighbour lists together hold a quarter of PAIRS_AT_ONCE entries, so memory stays bounded whatever the density.
-Covariances are accumulated from the offsets with `np.bincount` and solved with one batched `np.linalg.eigh`.
+The neighbourhoods are exactly the paper's (no cap). Each point's neighbours are counted first
+(`cKDTree.query_ball_point(return_length=True)`, which stores none). Where the cloud has at most PAIRS_AT_ONCE
+neighbour pairs, all are found at once with `cKDTree.query_pairs` (each unordered pair once, 16 bytes a pair: ~1 kB
+per point for a map voxel-filtered at 10 cm as in the paper, ~100 neighbours within 0.5 m); a denser cloud (an
+unfiltered scan, repeated points) is taken in blocks of consecutive points whose neighbour lists together hold at
+most a quarter of PAIRS_AT_ONCE entries (or one point's), so memory stays bounded by the larger of that and the
+densest single neighbourhood. Covariances are accumulated from the offsets with `np.bincount` and solved with one
+batched `np.linalg.eigh`.
 """
 
 from __future__ import annotations
@@ -75,7 +77,8 @@ def _neighbourhood_moments(
     coordinates = np.ascontiguousarray(points.T)  # (3, N): contiguous rows make np.take and bincount fast
     sums = np.zeros((3, n))
     products = np.zeros((3, 3, n))
-    pair_count = (int(tree.count_neighbors(tree, radius)) - n) // 2
+    lengths = tree.query_ball_point(points, radius, return_length=True, workers=-1).astype(np.int64)
+    pair_count = (int(lengths.sum()) - n) // 2
     if pair_count <= PAIRS_AT_ONCE:
         pairs = tree.query_pairs(radius, output_type="ndarray")
         counts = 1 + np.bincount(pairs.ravel(), minlength=n)
@@ -84,16 +87,17 @@ def _neighbourhood_moments(
             _accumulate(coordinates, np.ascontiguousarray(chunk[:, 0]), np.ascontiguousarray(chunk[:, 1]), sums,
                         products, both=True)
     else:
-        counts = np.zeros(n, dtype=np.int64)
-        # points whose lists hold ~PAIRS_AT_ONCE / 4 entries: a list entry takes ~36 bytes, an array pair 16
-        block = max(1, PAIRS_AT_ONCE // 4 * n // (2 * pair_count + n))
-        for start in range(0, n, block):
-            lists = tree.query_ball_point(points[start : start + block], radius, workers=-1, return_sorted=False)
-            lengths = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
-            counts[start : start + len(lists)] = lengths
-            first = np.repeat(np.arange(start, start + len(lists)), lengths)
-            second = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
+        counts = lengths
+        ends = np.cumsum(lengths)  # blocks of points whose lists hold at most PAIRS_AT_ONCE / 4 entries (one point
+        start = 0                  # at least): a list entry takes ~36 bytes, an array pair 16
+        while start < n:
+            stop = max(start + 1, int(np.searchsorted(ends, ends[start] - lengths[start] + PAIRS_AT_ONCE // 4,
+                                                      side="right")))
+            lists = tree.query_ball_point(points[start:stop], radius, workers=-1, return_sorted=False)
+            first = np.repeat(np.arange(start, stop), lengths[start:stop])
+            second = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(lengths[start:stop].sum()))
             del lists
+            start = stop
             for part in range(0, len(first), _PAIRS_PER_CHUNK):
                 chosen = slice(part, part + _PAIRS_PER_CHUNK)
                 _accumulate(coordinates, first[chosen], second[chosen], sums, products, both=False)
