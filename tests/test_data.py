@@ -296,25 +296,28 @@ def test_dataset_round_trip_keeps_precision_and_merges_sources(tmp_path):
 # --- tiling ---------------------------------------------------------------------------------------------------
 
 
-def test_an_interrupted_dataset_write_removes_the_files_it_wrote(tmp_path):
-    """Ctrl-C or SIGTERM (any exception) while submaps are written removes the files written so far that no manifest
-    names, and the folder it made; a dataset already there keeps its files and manifest."""
+def test_an_interrupted_dataset_write_leaves_the_dataset_as_it_was(tmp_path):
+    """Ctrl-C or SIGTERM (any exception) while submaps are written leaves the dataset as it was: no new file, none of
+    its files overwritten (a source written again included), no folder made."""
     def submaps(stop_after):
         for number in range(5):
             if number == stop_after:
                 raise KeyboardInterrupt
-            yield Submap(np.full((3, 3), float(number)) + UTM_OFFSET_M, UTM_OFFSET_M, np.stack([UTM_OFFSET_M] * 2),
-                         "map", number, None, "train")
+            yield Submap(np.full((3, 3), float(number)) + UTM_OFFSET_M, UTM_OFFSET_M + 5.0,
+                         np.stack([UTM_OFFSET_M, UTM_OFFSET_M + 10.0]), "map", number, None, "train")
 
     with pytest.raises(KeyboardInterrupt):
         write_dataset(tmp_path / "new", submaps(3), {})
     assert not (tmp_path / "new").exists()
     write_dataset(tmp_path / "old", submaps(99), {})
-    before = sorted(path.name for path in (tmp_path / "old").iterdir())
+    before = {path.name: path.read_bytes() for path in (tmp_path / "old").iterdir()}
     with pytest.raises(KeyboardInterrupt):
         write_dataset(tmp_path / "old", (Submap(s.points, s.center, s.bounds, "other", s.index, None, "train")
                                          for s in submaps(2)), {})
-    assert sorted(path.name for path in (tmp_path / "old").iterdir()) == before
+    with pytest.raises(KeyboardInterrupt):  # the same source again: its files are not overwritten half way
+        write_dataset(tmp_path / "old", (Submap(s.points + 1.0, s.center, s.bounds, "map", s.index, None, "train")
+                                         for s in submaps(2)), {})
+    assert {path.name: path.read_bytes() for path in (tmp_path / "old").iterdir()} == before
     assert len(read_dataset(tmp_path / "old").records) == 5
 
 

@@ -240,6 +240,10 @@ def _read_manifest(path: Path) -> dict:
     return manifest
 
 
+_PARTIAL = ".partial-"
+"""Prefix of a submap file while its dataset is being written."""
+
+
 def _record(submap: Submap, name: str) -> dict:
     """The manifest entry of a submap written as `name`."""
     return {
@@ -261,8 +265,9 @@ def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: d
 
     The manifest keeps the entries of sources not written now, so sequences can be added one call at a time;
     a source written again replaces its previous entries. `meta` (JSON-serialisable, e.g. the build
-    parameters) is stored per source written. A write that fails or is interrupted removes the submap files it
-    wrote that the manifest does not name (and the directory, when it made it and left it empty).
+    parameters) is stored per source written. Submaps are written under temporary names and take their own once
+    all are written, so a write that fails or is interrupted leaves the dataset as it was (and removes the directory
+    when it made it and left it empty).
     """
     out_dir = Path(out_dir)
     created = not out_dir.exists()
@@ -283,16 +288,17 @@ def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: d
                 raise DataError(f"submap {submap.source}/{submap.index}: unknown split {submap.split!r}")
             name = _file_name(submap.source, submap.index)
             size = submap.bounds[1] - submap.bounds[0]
-            write_points(out_dir / name, to_local(submap.points, submap.origin, size), attributes=submap.attributes)
-            records.append(_record(submap, name))
-    except BaseException:  # an error, Ctrl-C or SIGTERM: remove the files no manifest names, and a folder made now
-        named = {record["file"] for record in manifest["submaps"]}
+            records.append(_record(submap, name))  # first: its partial file is removed should the write fail
+            write_points(out_dir / f"{_PARTIAL}{name}", to_local(submap.points, submap.origin, size),
+                         attributes=submap.attributes)
+    except BaseException:  # an error, Ctrl-C or SIGTERM: the dataset as it was, without a folder made now
         for record in records:
-            if record["file"] not in named:
-                (out_dir / record["file"]).unlink(missing_ok=True)
+            (out_dir / f"{_PARTIAL}{record['file']}").unlink(missing_ok=True)
         if created and not any(out_dir.iterdir()):
             out_dir.rmdir()
         raise
+    for record in records:  # every submap written: they replace the files of the same names
+        os.replace(out_dir / f"{_PARTIAL}{record['file']}", out_dir / record["file"])
     written = {record["source"] for record in records}
     manifest["sources"].update({source: meta for source in sorted(written)})
     kept = [record for record in manifest["submaps"] if record["source"] not in written]
