@@ -1,4 +1,5 @@
-"""Time PCA normals and `evaluate()` (all metrics) on a 400k-point synthetic map and on the real KITTI submap.
+"""Time PCA normals and `evaluate()` (all metrics) on a 400k-point synthetic map, on the real KITTI submap and on an
+unfiltered dense patch (more neighbour pairs than normals hold at once: the blockwise path, timed once).
 
 Run: `.venv/bin/python benchmarks/bench_metrics.py [--repeats 3]` (figures go to BENCHMARKS.md, "## Metrics").
 Wall and CPU seconds are the median over the repeats; CPU counts every core (cKDTree queries use all of them).
@@ -81,6 +82,10 @@ def main() -> None:
         bench("KITTI submap vs itself + 3 cm noise", kitti, kitti + rng.normal(0, 0.03, kitti.shape), args.repeats)
     else:
         print(f"(KITTI submap not found at {KITTI_SUBMAP}: skipped)")
+    patch = np.column_stack([rng.uniform(0, 10, (200_000, 2)), rng.normal(0, NOISE_M, 200_000)])
+    patch += np.array([456_789.0, 5_432_101.0, 42.0])
+    bench("unfiltered patch (200k points on 10 x 10 m) vs itself + 3 cm noise", patch,
+          patch + rng.normal(0, 0.03, patch.shape), 1)
 
 
 if __name__ == "__main__":

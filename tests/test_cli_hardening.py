@@ -750,8 +750,8 @@ def test_bbox_and_point_count_errors_are_one_plain_line(run_cli, map_file, tiny_
     assert code == 2 and err == ("error: bbox must be six finite numbers x0,y0,z0,x1,y1,z1 with x0<=x1, y0<=y1, "
                                  "z0<=z1, got 10,10,10,0,0,1000\n")
     code, _, err = run_cli("decompress", str(msq), "-o", str(tmp_path / "x.ply"), "--bbox",
-                           "500005.25,5600005,249,500015,5600004.5,262")  # UTM: every digit shown
-    assert code == 2 and err.endswith("got 500005.25,5600005,249,500015,5600004.5,262\n")
+                           "500005.25,5600005.1234,249,500015,5600004.5,262")  # UTM: every digit shown
+    assert code == 2 and err.endswith("got 500005.25,5600005.1234,249,500015,5600004.5,262\n")
     data = msq.read_bytes()
     with pytest.raises(MapsqueezeError, match=r"got \('a', 1, 2, 3, 4, 5\)"):
         mapsqueeze.decompress(data, model=str(tiny_model_dir), bbox=("a", 1, 2, 3, 4, 5))

@@ -43,7 +43,8 @@ def parse_bbox(bbox: Sequence[float]) -> np.ndarray:
     except (TypeError, ValueError):
         box = np.empty(0)
     if box.shape != (6,) or not np.isfinite(box).all() or (box[:3] > box[3:]).any():
-        shown = ",".join(f"{v:.10g}" for v in box) if box.shape == (6,) else repr(bbox)
+        shown = (",".join(np.format_float_positional(v, trim="-") for v in box) if box.shape == (6,)
+                 else repr(bbox))
         raise InvalidPointCloudError(f"bbox must be six finite numbers x0,y0,z0,x1,y1,z1 with x0<=x1, y0<=y1, "
                                      f"z0<=z1, got {shown}")
     return box.reshape(2, 3)
