@@ -321,6 +321,32 @@ def test_an_interrupted_dataset_write_leaves_the_dataset_as_it_was(tmp_path):
     assert len(read_dataset(tmp_path / "old").records) == 5
 
 
+def test_a_dataset_write_that_fails_at_the_manifest_puts_the_old_files_back(tmp_path, monkeypatch):
+    """A manifest write that fails (a full disk) after the submaps are in place puts the files they replaced back:
+    the old manifest keeps describing its own files; and two submaps of one file name are a DataError."""
+    import mapsqueeze.data.mapping as mapping
+
+    def submaps(n):
+        return [Submap(np.zeros((n, 3)) + UTM_OFFSET_M + 1.0, UTM_OFFSET_M + 5.0,
+                       np.stack([UTM_OFFSET_M, UTM_OFFSET_M + 10.0]), "s", index, None, "train") for index in (0, 1)]
+
+    write_dataset(tmp_path, submaps(3), {})
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(mapping, "atomic_write_bytes", full)
+    with pytest.raises(DataError, match="cannot write"):
+        write_dataset(tmp_path, submaps(5), {})
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before
+    assert [record.local_points().shape for record in read_dataset(tmp_path).records] == [(3, 3), (3, 3)]
+    monkeypatch.undo()
+    with pytest.raises(DataError, match="its file name .* is taken"):
+        write_dataset(tmp_path / "dup", submaps(3) + submaps(3)[:1], {})
+    assert not (tmp_path / "dup").exists()
+
+
 def test_tiles_partition_the_map_with_exact_local_coordinates():
     rng = np.random.default_rng(5)
     points = UTM_OFFSET_M + rng.uniform([0, 0, 0], [130, 95, 40], (300_000, 3))

@@ -240,8 +240,43 @@ def _read_manifest(path: Path) -> dict:
     return manifest
 
 
-_PARTIAL = ".partial-"
-"""Prefix of a submap file while its dataset is being written."""
+_PARTIAL, _BACKUP = ".partial-", ".replaced-"
+"""Prefixes of a submap file written but not yet in place, and of the file it replaces until the manifest is
+written (hidden names: `io.point_cloud_files` lists no hidden file)."""
+
+
+def _commit(out_dir: Path, manifest_path: Path, manifest: dict, records: list[dict], meta: dict) -> None:
+    """Put the written submaps (`_PARTIAL` names) in place and write the manifest that names them. The files they
+    replace are kept under `_BACKUP` names until the manifest is written, and put back should anything fail."""
+    written = {record["source"] for record in records}
+    replaced = {record["file"] for record in manifest["submaps"] if record["source"] in written}
+    manifest["sources"].update({source: meta for source in sorted(written)})
+    kept = [record for record in manifest["submaps"] if record["source"] not in written]
+    manifest["submaps"] = sorted(kept + records, key=lambda record: (record["source"], record["index"]))
+    header = json.dumps({key: manifest[key] for key in ("format", "version", "sources")}, indent=1)[: -len("\n}")]
+    entries = ",\n  ".join(json.dumps(record) for record in manifest["submaps"])  # one line per submap
+    backups, placed = [], []
+    try:
+        for record in records:
+            final = out_dir / record["file"]
+            if final.exists():
+                os.replace(final, out_dir / f"{_BACKUP}{record['file']}")
+                backups.append(record["file"])
+            os.replace(out_dir / f"{_PARTIAL}{record['file']}", final)
+            placed.append(final)
+        atomic_write_bytes(manifest_path, f'{header},\n "submaps": [\n  {entries}\n ]\n}}\n'.encode())
+    except BaseException as exc:
+        for final in placed:
+            final.unlink(missing_ok=True)
+        for name in backups:
+            os.replace(out_dir / f"{_BACKUP}{name}", out_dir / name)
+        if isinstance(exc, OSError):
+            raise DataError(f"{manifest_path}: cannot write ({exc.strerror or exc})") from None
+        raise
+    for name in backups:
+        (out_dir / f"{_BACKUP}{name}").unlink(missing_ok=True)
+    for stale in replaced - {record["file"] for record in records}:  # a rebuilt source with fewer submaps
+        (out_dir / stale).unlink(missing_ok=True)
 
 
 def _record(submap: Submap, name: str) -> dict:
@@ -265,9 +300,9 @@ def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: d
 
     The manifest keeps the entries of sources not written now, so sequences can be added one call at a time;
     a source written again replaces its previous entries. `meta` (JSON-serialisable, e.g. the build
-    parameters) is stored per source written. Submaps are written under temporary names and take their own once
-    all are written, so a write that fails or is interrupted leaves the dataset as it was (and removes the directory
-    when it made it and left it empty).
+    parameters) is stored per source written. Submaps are written under temporary names and take their own, with
+    the manifest, once all are written, so a write that fails or is interrupted leaves the dataset as it was (and
+    removes the directory when it made it and left it empty). Two submaps of one file name are a DataError.
     """
     out_dir = Path(out_dir)
     created = not out_dir.exists()
@@ -287,31 +322,26 @@ def write_dataset(out_dir: str | os.PathLike, submaps: Iterable[Submap], meta: d
             if submap.split not in SPLITS:
                 raise DataError(f"submap {submap.source}/{submap.index}: unknown split {submap.split!r}")
             name = _file_name(submap.source, submap.index)
+            if name in {record["file"] for record in records} or name.startswith(_PARTIAL):
+                raise DataError(f"submap {submap.source}/{submap.index}: its file name {name} is taken (another "
+                                f"submap's, or a temporary file's); rename the source")
             size = submap.bounds[1] - submap.bounds[0]
             records.append(_record(submap, name))  # first: its partial file is removed should the write fail
             write_points(out_dir / f"{_PARTIAL}{name}", to_local(submap.points, submap.origin, size),
                          attributes=submap.attributes)
+        written = {record["source"] for record in records}
+        kept = [record for record in manifest["submaps"] if record["source"] not in written]
+        clash = {record["file"] for record in kept} & {record["file"] for record in records}
+        if clash:
+            raise DataError(f"{out_dir}: {', '.join(sorted(clash))} belong(s) to another source's submaps; rename "
+                            "the source")
+        _commit(out_dir, manifest_path, manifest, records, meta)
     except BaseException:  # an error, Ctrl-C or SIGTERM: the dataset as it was, without a folder made now
         for record in records:
             (out_dir / f"{_PARTIAL}{record['file']}").unlink(missing_ok=True)
         if created and not any(out_dir.iterdir()):
             out_dir.rmdir()
         raise
-    for record in records:  # every submap written: they replace the files of the same names
-        os.replace(out_dir / f"{_PARTIAL}{record['file']}", out_dir / record["file"])
-    written = {record["source"] for record in records}
-    manifest["sources"].update({source: meta for source in sorted(written)})
-    kept = [record for record in manifest["submaps"] if record["source"] not in written]
-    replaced = {record["file"] for record in manifest["submaps"] if record["source"] in written}
-    manifest["submaps"] = sorted(kept + records, key=lambda record: (record["source"], record["index"]))
-    header = json.dumps({key: manifest[key] for key in ("format", "version", "sources")}, indent=1)[: -len("\n}")]
-    entries = ",\n  ".join(json.dumps(record) for record in manifest["submaps"])  # one line per submap
-    try:
-        atomic_write_bytes(manifest_path, f'{header},\n "submaps": [\n  {entries}\n ]\n}}\n'.encode())
-        for stale in replaced - {record["file"] for record in records}:  # a rebuilt source with fewer submaps
-            (out_dir / stale).unlink(missing_ok=True)
-    except OSError as exc:
-        raise DataError(f"{manifest_path}: cannot write ({exc.strerror or exc})") from None
     return manifest_path
 
 

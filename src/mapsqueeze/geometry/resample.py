@@ -28,7 +28,9 @@ def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
     if len(cloud) == 1:
         return np.repeat(cloud, n_points, axis=0)
     extra = n_points - len(cloud)
-    added = _neighbour_midpoints(cloud, int(np.ceil(n_points / len(cloud))))
+    added, any_close = _neighbour_midpoints(cloud, int(np.ceil(n_points / len(cloud))))
+    if extra > len(added) and not any_close:  # no two points within MAX_GAP_M: copies, in turn
+        return np.concatenate([cloud, np.resize(cloud, (extra, 3))], axis=0)
     if extra > len(added):  # fewer points than a round's neighbours: densify the denser cloud again
         return resample_to_count(np.concatenate([cloud, added], axis=0), n_points)
     if extra < len(added):
@@ -36,11 +38,12 @@ def resample_to_count(cloud: np.ndarray, n_points: int | None) -> np.ndarray:
     return np.concatenate([cloud, added[:extra]], axis=0)
 
 
-def _neighbour_midpoints(cloud: np.ndarray, k: int) -> np.ndarray:
+def _neighbour_midpoints(cloud: np.ndarray, k: int) -> tuple[np.ndarray, bool]:
     """Point by point, the midpoints between it and its k nearest other points (at most len - 1), each one the
-    point itself where that neighbour lies farther than MAX_GAP_M."""
+    point itself where that neighbour lies farther than MAX_GAP_M; and whether any neighbour lies within it."""
     tree = KDTree(np.ascontiguousarray(cloud))
     _, index = tree.query(np.ascontiguousarray(cloud), k=min(k + 1, len(cloud)), distance_upper_bound=MAX_GAP_M)
     index = np.atleast_2d(index.astype(np.int64))[:, 1:]
-    index = np.where(index < len(cloud), index, np.arange(len(cloud))[:, None])  # beyond MAX_GAP_M: itself
-    return (0.5 * (cloud[:, None, :] + cloud[index])).reshape(-1, 3)
+    close = index < len(cloud)
+    index = np.where(close, index, np.arange(len(cloud))[:, None])  # beyond MAX_GAP_M: itself
+    return (0.5 * (cloud[:, None, :] + cloud[index])).reshape(-1, 3), bool(close.any())

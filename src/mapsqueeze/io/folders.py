@@ -17,5 +17,7 @@ def is_point_cloud_path(path: str | os.PathLike) -> bool:
 
 
 def point_cloud_files(folder: str | os.PathLike) -> list[Path]:
-    """The files directly in `folder` whose extension names a supported format, sorted by path."""
-    return sorted(path for path in Path(folder).iterdir() if path.is_file() and is_point_cloud_path(path))
+    """The files directly in `folder` whose extension names a supported format, sorted by path; hidden files (a
+    name starting with ".", such as a dataset write's temporary files) are left out."""
+    return sorted(path for path in Path(folder).iterdir()
+                  if path.is_file() and not path.name.startswith(".") and is_point_cloud_path(path))

@@ -109,7 +109,7 @@ class CompressionModel:
 
         n_points=None gives the native count (M x prod(K_i)). A smaller count keeps an evenly spread deterministic
         subset (`resample_to_count`); a larger one adds midpoints between each output point and its nearest
-        neighbours (arbitrary density). Raises ModelError if the network outputs a non-finite coordinate.
+        neighbours within 2 m, copies where it has none (arbitrary density). Raises ModelError if the network outputs a non-finite coordinate.
         """
         if len(points) == 0:
             return np.zeros((0, 3), dtype=np.float32)
